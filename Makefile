@@ -1,0 +1,56 @@
+# cubeloc: two commands do everything on a fresh Debian/Ubuntu machine.
+#   make demo   the daemon on the synthetic camera, with poses printed and an accuracy summary
+#   make test   lint and the whole test suite
+# Each installs what it needs (Debian packages, .venv, the project in editable mode);
+# stamps in .make/ keep a second run with nothing changed down to seconds.
+
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMPS := .make
+
+# Debian packages: the Aravis typelib for the camera backend, the build deps of PyGObject,
+# libusb for pyusb, and aravis-tools (arv-tool, arv-fake-gv-camera) for technicians.
+DEB_PACKAGES := gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev \
+                pkg-config libusb-1.0-0 python3-venv
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: all install test lint bench demo soak clean
+
+all: test
+
+$(STAMPS)/apt: Makefile
+	@mkdir -p $(STAMPS)
+	@missing=$$(for p in $(DEB_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q 'install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages: $$missing"; \
+	  $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing; \
+	fi
+	@touch $@
+
+$(BIN)/python: | $(STAMPS)/apt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+$(STAMPS)/install: pyproject.toml $(STAMPS)/apt | $(BIN)/python
+	$(BIN)/python -m pip install -q -e '.[test]'
+	@touch $@
+
+install: $(STAMPS)/install
+
+lint: install
+	$(BIN)/ruff check .
+
+test: lint
+	$(BIN)/python -m pytest -q
+
+bench: install
+	$(BIN)/python -m bench
+
+demo: install
+	$(BIN)/cubeloc demo
+
+clean:
+	rm -rf $(STAMPS) $(VENV) .pytest_cache .ruff_cache

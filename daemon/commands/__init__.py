@@ -1,0 +1,1 @@
+"""One module per ``cubeloc`` verb; see ``daemon.cli``."""

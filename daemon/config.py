@@ -1,0 +1,171 @@
+"""The daemon's configuration: one validated, frozen pydantic tree.
+
+Read from a TOML file (``--config``, else ``/etc/cubeloc/cubeloc.toml`` when present, else
+built-in defaults), then environment overrides ``CUBELOC_<SECTION>__<FIELD>`` (for example
+``CUBELOC_CAMERA__EXPOSURE_US=5000``, ``CUBELOC_NAME=robot7``; values are parsed as JSON
+where they can be, so ``'["tcp/10.0.0.2:7447"]'`` is a list). An invalid value fails at
+start with one line naming the field, the value and where it came from.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from cubeloc.errors import ConfigError
+from drivers.base import CameraSettings
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+DEFAULT_CONFIG_PATH = Path("/etc/cubeloc/cubeloc.toml")
+ENV_PREFIX = "CUBELOC_"
+
+
+class Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CameraConfig(Section):
+    source: str = Field("aravis", description="BACKEND[:ARGUMENT], see drivers.registry")
+    width: int = Field(1280, gt=0, le=16384)
+    height: int = Field(1024, gt=0, le=16384)
+    offset_x: int = Field(0, ge=0)
+    offset_y: int = Field(0, ge=0)
+    exposure_us: float | None = Field(None, gt=0, le=10_000_000, description="None: auto exposure")
+    gain_db: float | None = Field(None, ge=0, le=60, description="None: auto gain")
+    frame_rate_hz: float | None = Field(None, gt=0, le=1000)
+    trigger: Literal["free", "software", "line0"] = "free"
+    frame_timeout_s: float = Field(1.0, gt=0, le=60)
+
+    def settings(self) -> CameraSettings:
+        return CameraSettings(
+            width=self.width,
+            height=self.height,
+            offset_x=self.offset_x,
+            offset_y=self.offset_y,
+            exposure_us=self.exposure_us,
+            gain_db=self.gain_db,
+            frame_rate_hz=self.frame_rate_hz,
+            trigger=self.trigger,
+        )
+
+
+class PositioningConfig(Section):
+    calibration: Path = Path("/etc/cubeloc/camera.yaml")
+    target: Path = Path("/etc/cubeloc/target.yaml")
+    allow_two_faces: bool = True
+    allow_one_face: bool = False
+    max_reproj_rms_px: float = Field(1.5, gt=0, le=100)
+
+
+class ZenohConfig(Section):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = True
+    config_file: Path | None = Field(None, description="a Zenoh JSON5 file (TLS, access control)")
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for endpoint in value:
+            protocol, sep, address = endpoint.partition("/")
+            if not sep or not address or protocol not in {"tcp", "udp", "tls", "quic", "ws", "unixsock-stream"}:
+                raise ValueError(f"{endpoint!r} is not a Zenoh endpoint such as 'tcp/192.168.1.10:7447'")
+        return value
+
+
+class LoggingConfig(Section):
+    level: Literal["debug", "info", "warning", "error"] = "info"
+    format: Literal["auto", "json", "console"] = "auto"
+
+
+class Config(Section):
+    name: str = Field(default_factory=lambda: socket.gethostname().split(".")[0] or "cubeloc")
+    camera: CameraConfig = CameraConfig()
+    positioning: PositioningConfig = PositioningConfig()
+    zenoh: ZenohConfig = ZenohConfig()
+    logging: LoggingConfig = LoggingConfig()
+
+    @field_validator("name")
+    @classmethod
+    def _key_safe(cls, value: str) -> str:
+        if not value or any(c in value for c in "/*$?#[] \t"):
+            raise ValueError(f"{value!r} cannot be part of a Zenoh key (no / * $ ? # [ ] or spaces)")
+        return value
+
+
+def _env_overrides(environ: dict[str, str]) -> list[tuple[str, tuple[str, ...], Any]]:
+    """[(variable, path, value)] for every CUBELOC_* variable that names a config field."""
+    overrides = []
+    for variable, raw in sorted(environ.items()):
+        if not variable.startswith(ENV_PREFIX) or variable in ("CUBELOC_CONFIG",):
+            continue
+        path = tuple(part.lower() for part in variable[len(ENV_PREFIX):].split("__"))
+        try:
+            value: Any = json.loads(raw)
+        except ValueError:
+            value = raw
+        overrides.append((variable, path, value))
+    return overrides
+
+
+def _set_path(doc: dict[str, Any], path: tuple[str, ...], value: Any) -> None:
+    node = doc
+    for key in path[:-1]:
+        child = node.setdefault(key, {})
+        if not isinstance(child, dict):
+            raise ConfigError(f"cannot override {'.'.join(path)}: {key} is not a section")
+        node = child
+    node[path[-1]] = value
+
+
+def _format_error(error: dict[str, Any], origin: str) -> str:
+    field = ".".join(str(part) for part in error["loc"])
+    if error["type"] == "extra_forbidden":
+        return f"config {origin}: unknown key '{field}'"
+    if error["type"] == "missing":
+        return f"config {origin}: '{field}' is required"
+    return f"config {origin}: {field} = {error.get('input')!r}: {error['msg']}"
+
+
+def load_config(path: str | os.PathLike[str] | None = None, environ: dict[str, str] | None = None) -> Config:
+    """Load, override from the environment, validate. Raise ConfigError with one line."""
+    environ = dict(os.environ if environ is None else environ)
+    if path is None and environ.get("CUBELOC_CONFIG"):
+        path = environ["CUBELOC_CONFIG"]
+    if path is None and DEFAULT_CONFIG_PATH.exists():
+        path = DEFAULT_CONFIG_PATH
+    doc: dict[str, Any] = {}
+    origin = "(built-in defaults)"
+    if path is not None:
+        origin = str(path)
+        try:
+            doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ConfigError(f"config {path}: file not found") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"config {path}: cannot read ({exc})") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"config {path}: not valid TOML ({exc})") from None
+    overrides = _env_overrides(environ)
+    for _, key_path, value in overrides:
+        _set_path(doc, key_path, value)
+    try:
+        return Config.model_validate(doc)
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        # Name the environment variable when the bad value came from one.
+        for variable, key_path, _ in overrides:
+            if tuple(str(p) for p in error["loc"][: len(key_path)]) == key_path:
+                raise ConfigError(_format_error(error, f"{origin} + {variable}")) from None
+        raise ConfigError(_format_error(error, origin)) from None

@@ -1,0 +1,151 @@
+"""The camera protocol: what every backend (Aravis, replay, synthetic) provides.
+
+A camera is opened, started, asked for frames with a timeout, stopped and closed.
+Discovery (listing devices) is kept apart from streaming: see ``drivers.discovery``.
+
+Frames a backend cannot trust (bad buffer status, zero or non-monotonic timestamp) are
+dropped and counted in ``CaptureStats``; they never reach the caller.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from cubeloc.errors import CubelocError
+
+TriggerMode = Literal["free", "software", "line0"]
+
+
+class CameraError(CubelocError):
+    """A camera problem a user can act on."""
+
+
+class CameraNotFound(CameraError):
+    """No camera matches the requested id, serial or path."""
+
+
+class CameraBusy(CameraError):
+    """Another process owns the camera (the message names it when known)."""
+
+
+class FeatureNotSupported(CameraError):
+    """A requested setting is not offered by this camera (the message names the feature)."""
+
+
+class FrameTimeout(CameraError):
+    """No frame arrived within the timeout. The stream may still recover by itself."""
+
+
+class StreamBroken(CameraError):
+    """The stream cannot continue (camera gone, cable pulled): close and reopen."""
+
+
+class EndOfStream(CameraError):
+    """A finite source (a recorded sequence, a synthetic trajectory) has no more frames."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One Mono8 image and its timing.
+
+    ``stamp_ns`` is the capture time on the host's CLOCK_REALTIME in integer nanoseconds:
+    the device timestamp mapped to the host clock (see ``drivers.clock``), or for sources
+    without a device clock the recorded or simulated time. It is what goes on the wire.
+    """
+
+    image: np.ndarray  # (H, W) uint8, C-contiguous
+    frame_id: int  # the camera's own frame counter (gaps mean lost frames)
+    device_timestamp_ns: int  # the camera's clock, arbitrary epoch
+    stamp_ns: int  # host CLOCK_REALTIME at exposure, ns
+    exposure_us: float  # exposure time actually used, microseconds
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """What a user may set. ``None`` leaves the camera's own value (or turns auto on)."""
+
+    width: int = 1280
+    height: int = 1024
+    offset_x: int = 0
+    offset_y: int = 0
+    exposure_us: float | None = None  # None: auto exposure where the camera has it
+    gain_db: float | None = None  # None: auto gain where the camera has it
+    frame_rate_hz: float | None = None  # None: as fast as the camera runs
+    trigger: TriggerMode = "free"
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """One camera as discovery sees it."""
+
+    device_id: str  # what ``--camera`` / ``camera.source`` accepts
+    vendor: str
+    model: str
+    serial: str
+    transport: str  # "gige", "usb3", "usb", "fake", "replay", "synthetic"
+    address: str = ""  # IP address or USB bus:port, where known
+    notes: tuple[str, ...] = ()  # problems and fixes (permissions, USB2 link, ...)
+
+
+@dataclass
+class CaptureStats:
+    """Counters a backend keeps while streaming; reported on ``status``."""
+
+    delivered: int = 0
+    incomplete: int = 0  # buffers with a bad status, dropped
+    bad_timestamp: int = 0  # zero or non-monotonic timestamps, dropped
+    frame_id_gaps: int = 0  # frames the camera numbered but we never got
+    timeouts: int = 0
+    reconnects: int = 0
+    extra: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def dropped(self) -> int:
+        return self.incomplete + self.bad_timestamp + self.frame_id_gaps
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """The protocol every backend implements. Use as a context manager for open/close."""
+
+    @property
+    def info(self) -> DeviceInfo: ...
+
+    @property
+    def settings(self) -> CameraSettings: ...
+
+    @property
+    def stats(self) -> CaptureStats: ...
+
+    def open(self) -> None:
+        """Connect and apply the settings. Raises CameraNotFound, CameraBusy, FeatureNotSupported."""
+
+    def start(self) -> None:
+        """Start acquisition."""
+
+    def next_frame(self, timeout_s: float) -> Frame:
+        """The next good frame. Raises FrameTimeout, StreamBroken or EndOfStream."""
+
+    def stop(self) -> None:
+        """Stop acquisition; the camera stays open."""
+
+    def close(self) -> None:
+        """Release the camera. Safe to call twice."""
+
+    def __enter__(self) -> Camera: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+class CameraBase:
+    """Shared context-manager behaviour for backends."""
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,66 @@
+"""The one interface between the daemon loop and positioning.
+
+The daemon hands every frame to a ``FrameProcessor`` and publishes what comes back. The
+single-frame target pose is one processor; the tracker (initialisation on the target,
+then visual tracking) is another that wraps it. Both take arrays and return frozen
+dataclasses: no cameras, Zenoh, logging configuration or printing in here.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from positioning.geometry import Transform
+
+
+class PoseState(str, enum.Enum):
+    """Where a published pose came from (the ``state`` field of ``cubeloc.pose/1``)."""
+
+    TARGET = "target"  # from the target alone, this frame
+    TRACKING = "tracking"  # from the tracker's map, the target not (fully) in view
+    RELOCALISED = "relocalised"  # the first pose after a visible correction (a jump)
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """A trustworthy camera pose for one frame.
+
+    ``covariance`` is 6x6 over (x, y, z, rotation about X, rotation about Y, rotation about
+    Z) of the camera in the world frame (ROS ``PoseWithCovariance`` order), or None.
+    """
+
+    T_world_camera: Transform
+    state: PoseState
+    planes: int  # target faces used (0 when the target played no part)
+    tag_ids: tuple[int, ...]
+    reproj_rms_px: float
+    covariance: np.ndarray | None = None  # (6, 6)
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What positioning made of one frame: a pose, or the reason there is none.
+
+    ``status`` is a short machine-readable word shown on the daemon's ``status``
+    (``"ok"``, ``"no_target"``, ``"one_face"``, ``"reprojection"``, ``"initialising"``,
+    ``"lost"``...); ``detail`` is for humans.
+    """
+
+    estimate: PoseEstimate | None
+    status: str
+    detail: str = ""
+    tags_seen: tuple[int, ...] = ()
+
+
+class FrameProcessor(Protocol):
+    """Turns frames into poses. Implementations keep state between frames (the last pose,
+    a map) and must never raise for a bad image: they return a FrameResult saying why."""
+
+    def process(self, image: np.ndarray, stamp_ns: int, seq: int) -> FrameResult: ...
+
+    def reset(self) -> None:
+        """Forget all state and re-initialise on the target (the ``reset`` queryable)."""

@@ -1,0 +1,292 @@
+"""The target: a rigid set of AprilTags with known 3-D corners, defining the world frame.
+
+A target file (YAML) is either explicit tags, for any rigid arrangement::
+
+    family: tag36h11
+    tags:
+      - id: 0
+        corners: [[x, y, z], [x, y, z], [x, y, z], [x, y, z]]   # TL, TR, BR, BL, metres
+
+or the cube shorthand::
+
+    family: tag36h11
+    cube: {side: 0.18, tag_size: 0.144, ids: [0, 1, 2, 3, 4, 5]}
+
+Cube layout (the README has a picture): the world origin is the cube centre, z up (the
+cube stands on its ``-z`` face), and ``ids`` are the tags on the faces
+``+x, +y, -x, -y, +z (top), -z (bottom)`` in that order. Side faces are printed upright
+(tag "up" = world +z). Unfolded, the four side faces form a strip ``+x, +y, -x, -y`` from
+left to right seen from outside, the top face sits above ``+x`` (its "up" is world -x) and
+the bottom face below ``+x`` (its "up" is world +x).
+
+Tag corners are TL, TR, BR, BL of the tag printed upright, on the outer edge of its black
+border (interfaces.md); tag size is that outer black edge length.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from cubeloc.errors import InputFileError
+
+# Families both the AprilTag library and OpenCV's aruco module know.
+KNOWN_FAMILIES = ("tag36h11", "tag25h9", "tag16h5", "tag36h10")
+FAMILY_MAX_ID = {"tag36h11": 586, "tag25h9": 34, "tag16h5": 29, "tag36h10": 2319}
+
+# Cube faces in the order of ``cube.ids``: (name, outward normal, tag "up" direction).
+CUBE_FACES: tuple[tuple[str, tuple[float, float, float], tuple[float, float, float]], ...] = (
+    ("+x", (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    ("+y", (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+    ("-x", (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    ("-y", (0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
+    ("+z", (0.0, 0.0, 1.0), (-1.0, 0.0, 0.0)),
+    ("-z", (0.0, 0.0, -1.0), (1.0, 0.0, 0.0)),
+)
+
+PLANARITY_TOLERANCE_M = 1e-4
+SQUARENESS_TOLERANCE = 1e-3  # relative, on edge lengths and diagonals
+
+
+@dataclass(frozen=True)
+class Tag:
+    """One tag of a target: its id and 3-D corners (TL, TR, BR, BL) in the world frame."""
+
+    tag_id: int
+    corners: np.ndarray  # (4, 3) metres, world frame
+    face: str = ""  # cube face name where the target is a cube
+
+    @property
+    def size_m(self) -> float:
+        return float(np.mean(np.linalg.norm(np.roll(self.corners, -1, axis=0) - self.corners, axis=1)))
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Outward normal (the side the tag is seen from)."""
+        c = self.corners
+        n = np.cross(c[1] - c[0], c[3] - c[0])  # right x down ... points into the tag
+        return -n / np.linalg.norm(n)
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.corners.mean(axis=0)
+
+
+@dataclass(frozen=True)
+class CubeSpec:
+    side_m: float
+    tag_size_m: float
+    ids: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class Target:
+    """A validated target. ``tags`` are in file order; look up by id with ``tag(id)``."""
+
+    family: str
+    tags: tuple[Tag, ...]
+    cube: CubeSpec | None = None
+    source: str = ""  # the file it came from, for messages
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        return tuple(t.tag_id for t in self.tags)
+
+    def tag(self, tag_id: int) -> Tag:
+        for t in self.tags:
+            if t.tag_id == tag_id:
+                return t
+        raise KeyError(tag_id)
+
+    def has(self, tag_id: int) -> bool:
+        return any(t.tag_id == tag_id for t in self.tags)
+
+    def corners_of(self, tag_ids: list[int] | tuple[int, ...]) -> np.ndarray:
+        """(4N, 3) world corners of the given tags, TL TR BR BL each, in the given order."""
+        return np.concatenate([self.tag(i).corners for i in tag_ids]).reshape(-1, 3)
+
+    def to_yaml(self) -> str:
+        """The explicit-tags form (always loadable, whatever the target was made from)."""
+        doc = {
+            "family": self.family,
+            "tags": [
+                {"id": t.tag_id, "corners": [[round(float(v), 9) for v in c] for c in t.corners]}
+                for t in self.tags
+            ],
+        }
+        return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+
+
+def cube_tag_corners(side_m: float, tag_size_m: float, normal: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """TL, TR, BR, BL of a tag centred on a cube face, seen from outside. (4, 3) metres."""
+    normal = np.asarray(normal, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64)
+    right = np.cross(up, normal)  # camera looking at the face: x right = up x normal
+    center = normal * side_m / 2.0
+    h = tag_size_m / 2.0
+    return np.array(
+        [
+            center + h * (-right + up),
+            center + h * (right + up),
+            center + h * (right - up),
+            center + h * (-right - up),
+        ]
+    )
+
+
+def make_cube(
+    side_m: float = 0.18,
+    tag_size_m: float = 0.144,
+    ids: tuple[int, ...] = (0, 1, 2, 3, 4, 5),
+    family: str = "tag36h11",
+) -> Target:
+    """The cube shorthand as a Target (see the module docstring for the layout)."""
+    if len(ids) != 6:
+        raise InputFileError(f"cube.ids must list 6 tag ids (+x +y -x -y +z -z), got {len(ids)}")
+    if not 0 < tag_size_m <= side_m:
+        raise InputFileError(
+            f"cube.tag_size {tag_size_m} m must be positive and no larger than cube.side {side_m} m"
+        )
+    tags = tuple(
+        Tag(int(tag_id), cube_tag_corners(side_m, tag_size_m, np.array(n), np.array(u)), name)
+        for tag_id, (name, n, u) in zip(ids, CUBE_FACES, strict=True)
+    )
+    target = Target(family, tags, CubeSpec(side_m, tag_size_m, tuple(int(i) for i in ids)))
+    validate_target(target, "cube")
+    return target
+
+
+def validate_target(target: Target, where: str) -> None:
+    """Raise InputFileError naming ``where`` and the first problem found."""
+    if target.family not in KNOWN_FAMILIES:
+        raise InputFileError(
+            f"{where}: unrecognised tag family {target.family!r}; families I know: {', '.join(KNOWN_FAMILIES)}"
+        )
+    if not target.tags:
+        raise InputFileError(f"{where}: the target has no tags")
+    seen: set[int] = set()
+    for tag in target.tags:
+        if tag.tag_id in seen:
+            raise InputFileError(f"{where}: tag id {tag.tag_id} appears twice")
+        seen.add(tag.tag_id)
+        if not 0 <= tag.tag_id <= FAMILY_MAX_ID[target.family]:
+            raise InputFileError(
+                f"{where}: tag id {tag.tag_id} is outside {target.family} (0..{FAMILY_MAX_ID[target.family]})"
+            )
+        _validate_square(tag, where)
+
+
+def _validate_square(tag: Tag, where: str) -> None:
+    c = tag.corners
+    if c.shape != (4, 3) or not np.all(np.isfinite(c)):
+        raise InputFileError(f"{where}: tag {tag.tag_id} needs 4 finite corners [x, y, z]")
+    edges = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)
+    size = edges.mean()
+    if size <= 0:
+        raise InputFileError(f"{where}: tag {tag.tag_id} has zero size")
+    normal = np.cross(c[1] - c[0], c[3] - c[0])
+    normal /= np.linalg.norm(normal)
+    off_plane = np.abs((c - c.mean(axis=0)) @ normal).max()
+    if off_plane > PLANARITY_TOLERANCE_M:
+        raise InputFileError(
+            f"{where}: tag {tag.tag_id} corners are not planar ({off_plane * 1000:.2f} mm off the plane)"
+        )
+    diagonals = np.linalg.norm(c[2] - c[0]), np.linalg.norm(c[3] - c[1])
+    if (np.ptp(edges) / size > SQUARENESS_TOLERANCE
+            or abs(diagonals[0] - diagonals[1]) / size > SQUARENESS_TOLERANCE
+            or not math.isclose(diagonals[0], size * math.sqrt(2), rel_tol=SQUARENESS_TOLERANCE)):
+        raise InputFileError(
+            f"{where}: tag {tag.tag_id} corners are not a square (edges {np.round(edges * 1000, 2).tolist()} mm); "
+            "corners must be TL, TR, BR, BL of the outer black border"
+        )
+
+
+def _number(value: Any, name: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputFileError(f"{where}: {name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def parse_target(doc: Any, where: str) -> Target:
+    """Build a Target from a parsed YAML document."""
+    if not isinstance(doc, dict):
+        raise InputFileError(f"{where}: expected a mapping with 'family' and 'tags' or 'cube'")
+    unknown = set(doc) - {"family", "tags", "cube"}
+    if unknown:
+        raise InputFileError(f"{where}: unknown key(s) {sorted(unknown)}; expected family, tags or cube")
+    family = doc.get("family", "tag36h11")
+    if not isinstance(family, str):
+        raise InputFileError(f"{where}: family must be a string such as 'tag36h11'")
+    if ("tags" in doc) == ("cube" in doc):
+        raise InputFileError(f"{where}: give exactly one of 'tags' (explicit corners) or 'cube' (shorthand)")
+    if "cube" in doc:
+        cube = doc["cube"]
+        if not isinstance(cube, dict):
+            raise InputFileError(f"{where}: cube must be a mapping {{side, tag_size, ids}}")
+        missing = {"side", "tag_size", "ids"} - set(cube)
+        if missing:
+            raise InputFileError(f"{where}: cube is missing {sorted(missing)}")
+        ids = cube["ids"]
+        if not isinstance(ids, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in ids):
+            raise InputFileError(f"{where}: cube.ids must be a list of 6 integers")
+        try:
+            target = make_cube(
+                _number(cube["side"], "cube.side", where),
+                _number(cube["tag_size"], "cube.tag_size", where),
+                tuple(ids),
+                family,
+            )
+        except InputFileError as exc:
+            message = str(exc)
+            raise InputFileError(message if message.startswith(where) else f"{where}: {message}") from None
+        return Target(target.family, target.tags, target.cube, where)
+    raw_tags = doc["tags"]
+    if not isinstance(raw_tags, list) or not raw_tags:
+        raise InputFileError(f"{where}: tags must be a non-empty list")
+    tags = []
+    for index, raw in enumerate(raw_tags):
+        if not isinstance(raw, dict) or "id" not in raw or "corners" not in raw:
+            raise InputFileError(f"{where}: tags[{index}] needs 'id' and 'corners'")
+        tag_id = raw["id"]
+        if isinstance(tag_id, bool) or not isinstance(tag_id, int):
+            raise InputFileError(f"{where}: tags[{index}].id must be an integer, got {tag_id!r}")
+        corners = raw["corners"]
+        if not isinstance(corners, list) or len(corners) != 4:
+            count = len(corners) if isinstance(corners, list) else "no"
+            raise InputFileError(f"{where}: tag {tag_id} needs 4 corners (TL, TR, BR, BL), got {count}")
+        points = []
+        for corner in corners:
+            if not isinstance(corner, list) or len(corner) != 3:
+                raise InputFileError(f"{where}: tag {tag_id}: each corner must be [x, y, z]")
+            points.append([_number(v, f"tag {tag_id} corner", where) for v in corner])
+        tags.append(Tag(tag_id, np.array(points)))
+    target = Target(family, tuple(tags), None, where)
+    validate_target(target, where)
+    return target
+
+
+def load_target(path: str | os.PathLike[str]) -> Target:
+    """Read and validate a target file; raise InputFileError with a one-line reason."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputFileError(f"{path}: target file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"{path}: cannot read target file ({exc})") from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputFileError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    return parse_target(doc, str(path))
+
+
+def default_cube_yaml() -> str:
+    """The default target file: the paper's 18 cm cube with 14.4 cm tag36h11 tags, ids 0-5."""
+    return "family: tag36h11\ncube: {side: 0.18, tag_size: 0.144, ids: [0, 1, 2, 3, 4, 5]}\n"
