@@ -13,7 +13,7 @@ STAMPS := .make
 # Debian packages: the Aravis typelib for the camera backend, the build deps of PyGObject,
 # libusb for pyusb, and aravis-tools (arv-tool, arv-fake-gv-camera) for technicians.
 DEB_PACKAGES := gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev \
-                pkg-config libusb-1.0-0 python3-venv
+                pkg-config libusb-1.0-0 python3-venv python3-dev gcc
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: all install test lint bench demo soak clean

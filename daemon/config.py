@@ -84,6 +84,15 @@ class ZenohConfig(Section):
         return value
 
 
+class DaemonConfig(Section):
+    """Rates and back-off of the ``cubeloc run`` loop (daemon/service.py)."""
+
+    status_period_s: float = Field(1.0, gt=0, le=60, description="period of the status publication")
+    reconnect_initial_s: float = Field(0.5, gt=0, le=60, description="first wait before reopening a camera")
+    reconnect_max_s: float = Field(10.0, gt=0, le=600, description="longest wait between reopen attempts")
+    timeout_streak: int = Field(3, ge=1, le=1000, description="frame timeouts in a row that mean: reopen the camera")
+
+
 class LoggingConfig(Section):
     level: Literal["debug", "info", "warning", "error"] = "info"
     format: Literal["auto", "json", "console"] = "auto"
@@ -94,6 +103,7 @@ class Config(Section):
     camera: CameraConfig = CameraConfig()
     positioning: PositioningConfig = PositioningConfig()
     zenoh: ZenohConfig = ZenohConfig()
+    daemon: DaemonConfig = DaemonConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @field_validator("name")
@@ -108,7 +118,8 @@ def _env_overrides(environ: dict[str, str]) -> list[tuple[str, tuple[str, ...], 
     """[(variable, path, value)] for every CUBELOC_* variable that names a config field."""
     overrides = []
     for variable, raw in sorted(environ.items()):
-        if not variable.startswith(ENV_PREFIX) or variable in ("CUBELOC_CONFIG",):
+        # CUBELOC_LOCK_DIR is the drivers' camera lock directory, not a config field.
+        if not variable.startswith(ENV_PREFIX) or variable in ("CUBELOC_CONFIG", "CUBELOC_LOCK_DIR"):
             continue
         path = tuple(part.lower() for part in variable[len(ENV_PREFIX):].split("__"))
         try:
