@@ -1,0 +1,180 @@
+"""Trajectories, the SyntheticCamera (camera protocol, registry source) and `cubeloc simulate`."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from calib.camera_info import paper_camera, read_camera_info
+from drivers.base import Camera, CameraNotFound, CameraSettings, EndOfStream, FeatureNotSupported
+from drivers.registry import make_camera
+from drivers.sequence import read_mono_png, read_sequence_index
+from fakes import TRAJECTORIES, SyntheticCamera, default_room, make_trajectory
+from fakes.trajectories import EPOCH_NS, TrajectoryError
+from positioning.geometry import look_at
+from positioning.target import load_target, make_cube
+from positioning.trajectory_io import StampedPose, read_tum, write_tum
+
+CUBE = make_cube()
+PAPER = paper_camera()
+HALF_FOV = np.array([PAPER.cx / PAPER.fx, PAPER.cy / PAPER.fy])  # normalised image half-size
+
+
+def cube_in_view(pose) -> bool:
+    centre = pose.inverse().apply(np.zeros((1, 3)))[0]
+    return bool(centre[2] > 0 and np.all(np.abs(centre[:2] / centre[2]) < 0.9 * HALF_FOV))
+
+
+def faces_towards(pose) -> set[int]:
+    """Tags whose face the camera sees at under 75 degrees from its normal."""
+    seen = set()
+    for tag in CUBE.tags:
+        to_camera = pose.translation - tag.center
+        if tag.normal @ to_camera / np.linalg.norm(to_camera) > np.cos(np.radians(75)):
+            seen.add(tag.tag_id)
+    return seen
+
+
+@pytest.mark.parametrize("name", TRAJECTORIES)
+def test_every_trajectory_starts_on_three_faces_and_moves_smoothly(name):
+    poses = make_trajectory(name)
+    first = poses[0].T_world_camera
+    assert cube_in_view(first) and faces_towards(first) == {0, 3, 4}
+    assert 1.5 <= np.linalg.norm(first.translation) <= 2.5
+    assert poses[0].stamp_ns == EPOCH_NS
+    assert np.all(np.diff([p.stamp_ns for p in poses]) == 100_000_000)  # 10 fps default
+    room = default_room()
+    for a, b in zip(poses, poses[1:], strict=False):
+        assert room.contains(b.T_world_camera.translation, margin=0.3)
+        step = np.linalg.norm(b.T_world_camera.translation - a.T_world_camera.translation)
+        turn = np.degrees(a.T_world_camera.rotation_angle_to(b.T_world_camera))
+        assert step * 10 < 1.0 and turn * 10 < 45  # walking pace, turning at < 45 deg/s
+
+
+def test_paper_and_room_walk_lose_the_cube_and_room_walk_finds_it_again():
+    paper = [cube_in_view(p.T_world_camera) for p in make_trajectory("paper")]
+    assert all(paper[:30]) and not any(paper[100:])  # in view for 3 s, gone after 10 s
+    walk = [cube_in_view(p.T_world_camera) for p in make_trajectory("room_walk", seconds=40, fps=10)]
+    out = np.flatnonzero(~np.array(walk))
+    assert walk[0] and walk[-1]
+    assert len(out) >= 200 and np.all(np.diff(out) == 1)  # one stretch of >= 20 s out of view
+    poses = make_trajectory("orbit", seconds=40)
+    azimuths = np.unwrap([np.arctan2(p.T_world_camera.translation[1], p.T_world_camera.translation[0]) for p in poses])
+    assert np.ptp(azimuths) > np.radians(340)  # round the cube
+    assert all(cube_in_view(p.T_world_camera) for p in poses)
+
+
+def test_trajectory_errors_say_what_is_allowed():
+    with pytest.raises(TrajectoryError, match="known: static, orbit, paper, room_walk"):
+        make_trajectory("zigzag")
+    with pytest.raises(TrajectoryError, match="at least 30"):
+        make_trajectory("room_walk", seconds=10)
+    with pytest.raises(TrajectoryError, match="fps"):
+        make_trajectory("paper", seconds=3, fps=0)
+    assert len(make_trajectory("static", seconds=2, fps=25)) == 50
+
+
+def test_synthetic_camera_follows_the_protocol_and_reports_ground_truth():
+    camera = make_camera("synthetic:orbit?seconds=0.4&fps=10&seed=3&noise=1.5")
+    assert isinstance(camera, SyntheticCamera) and isinstance(camera, Camera)
+    assert camera.info.transport == "synthetic" and camera.settings.frame_rate_hz == pytest.approx(10)
+    truth = make_trajectory("orbit", 0.4, 10)
+    with camera:
+        camera.start()
+        frames = [camera.next_frame(timeout_s=1.0) for _ in range(4)]
+        with pytest.raises(EndOfStream):
+            camera.next_frame(timeout_s=1.0)
+    assert [f.frame_id for f in frames] == [0, 1, 2, 3]
+    assert [f.stamp_ns for f in frames] == [p.stamp_ns for p in truth]
+    assert all(f.image.shape == (1024, 1280) and f.image.dtype == np.uint8 for f in frames)
+    assert camera.stats.delivered == 4 and camera.stats.dropped == 0
+    for frame, pose in zip(frames, truth, strict=True):
+        found = camera.ground_truth_at(frame.stamp_ns)
+        assert np.allclose(found.matrix(), pose.T_world_camera.matrix())
+    assert camera.ground_truth_at(frames[0].stamp_ns + 10**9) is None
+    # frames are rendered from the poses with noise seeded per frame: reproducible
+    again = SyntheticCamera(truth, seed=3, options=camera.options)
+    with again:
+        again.start()
+        assert np.array_equal(again.next_frame(1.0).image, frames[0].image)
+        assert not np.array_equal(again.next_frame(1.0).image, frames[0].image)
+
+
+def test_synthetic_camera_loops_and_paces_in_real_time():
+    camera = make_camera("synthetic:static?seconds=0.3&fps=10&loop=1&realtime=1")
+    with camera:
+        camera.start()
+        started = time.monotonic()
+        frames = [camera.next_frame(timeout_s=2.0) for _ in range(5)]
+        elapsed = time.monotonic() - started
+    ids = [f.frame_id for f in frames]
+    assert ids == sorted(set(ids)) and ids[-1] >= 4  # increasing; a slow machine may skip some
+    assert camera.stats.frame_id_gaps == ids[-1] - 4
+    # paced by the clock: frame k is not delivered before k / fps after the start
+    assert elapsed >= 0.1 * ids[-1] - 0.05
+    stamps = np.array([f.stamp_ns for f in frames])
+    assert np.all(np.diff(stamps) == 100_000_000 * np.diff(ids))  # on the frame grid, over loops
+    assert abs(stamps[0] - time.time_ns()) < 60e9  # host clock in real time
+    assert camera.ground_truth_at(int(stamps[-1])) is not None  # loops map back onto the trajectory
+
+
+@pytest.mark.parametrize(
+    ("source", "error", "match"),
+    [
+        ("synthetic:zigzag", CameraNotFound, "known: static, orbit"),
+        ("synthetic:paper?speed=3", FeatureNotSupported, "unknown option.*speed.*known: seconds"),
+        ("synthetic:paper?fps=fast", FeatureNotSupported, "fps='fast'"),
+        ("synthetic:paper?hide=top", FeatureNotSupported, "hide='top'"),
+    ],
+)
+def test_bad_synthetic_sources_name_the_problem(source, error, match):
+    with pytest.raises(error, match=match):
+        make_camera(source)
+
+
+def test_synthetic_camera_refuses_settings_it_cannot_honour():
+    camera = make_camera("synthetic:static", CameraSettings(width=640, height=480))
+    with pytest.raises(FeatureNotSupported, match="renders 1280x1024"):
+        camera.open()
+
+
+def test_simulate_writes_a_complete_sequence(tmp_path, cli):
+    out = tmp_path / "seq"
+    result = cli("simulate", "--trajectory", "paper", "--seconds", "0.5", "--fps", "6", "--out", str(out), "--seed", "2")
+    assert result.returncode == 0, result.stderr
+    assert "wrote 3 frames" in result.stdout
+    entries = read_sequence_index(out)
+    truth = read_tum(out / "groundtruth.tum")
+    assert [e.stamp_ns for e in entries] == [p.stamp_ns for p in truth] == [
+        p.stamp_ns for p in make_trajectory("paper", 0.5, 6)
+    ]
+    assert read_mono_png(entries[0].path).shape == (1024, 1280)
+    assert np.allclose(read_camera_info(out / "camera.yaml").camera_matrix, PAPER.camera_matrix)
+    assert load_target(out / "target.yaml").ids == (0, 1, 2, 3, 4, 5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]  # no staging left behind
+
+    again = cli("simulate", "--trajectory", "paper", "--seconds", "0.5", "--out", str(out))
+    assert again.returncode == 2
+    assert again.stderr.count("\n") == 1 and "Traceback" not in again.stderr
+    assert str(out) in again.stderr and "choose another --out" in again.stderr
+
+    short = cli("simulate", "--trajectory", "room_walk", "--seconds", "5", "--out", str(tmp_path / "walk"))
+    assert short.returncode == 2 and "at least 30" in short.stderr
+    assert not (tmp_path / "walk").exists()
+
+
+def test_a_tum_file_plays_as_a_trajectory_and_poses_outside_the_room_are_refused(tmp_path):
+    poses = make_trajectory("orbit", seconds=0.2, fps=10)
+    path = tmp_path / "mine.tum"
+    write_tum(path, poses)
+    with make_camera(f"synthetic:{path}") as camera:
+        camera.start()
+        frame = camera.next_frame(1.0)
+    assert frame.stamp_ns == poses[0].stamp_ns
+    assert np.allclose(camera.ground_truth_at(frame.stamp_ns).matrix(), poses[0].T_world_camera.matrix(), atol=1e-8)
+    outside = [StampedPose(EPOCH_NS, look_at(np.array([9.0, 0.0, 1.0]), np.zeros(3)))]
+    write_tum(path, outside)
+    with pytest.raises(CameraNotFound, match="pose 0 at .* outside the synthetic room"):
+        make_camera(f"synthetic:{path}")
