@@ -25,6 +25,7 @@ border (interfaces.md); tag size is that outer black edge length.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -66,14 +67,14 @@ class Tag:
     def size_m(self) -> float:
         return float(np.mean(np.linalg.norm(np.roll(self.corners, -1, axis=0) - self.corners, axis=1)))
 
-    @property
+    @functools.cached_property
     def normal(self) -> np.ndarray:
-        """Outward normal (the side the tag is seen from)."""
+        """Outward normal (the side the tag is seen from); cached, positioning asks often."""
         c = self.corners
         n = np.cross(c[1] - c[0], c[3] - c[0])  # right x down ... points into the tag
         return -n / np.linalg.norm(n)
 
-    @property
+    @functools.cached_property
     def center(self) -> np.ndarray:
         return self.corners.mean(axis=0)
 

@@ -1,0 +1,135 @@
+"""``cubeloc generate (cube|board) ...``: printable targets at true physical scale.
+
+Each kind of printable is a sub-verb with its own ``register_*`` and ``run_*`` below;
+adding one (the calibration board) is a parser and a function, with its implementation
+imported inside the function so ``cubeloc --help`` stays fast.
+
+``cube --target FILE --out DIR`` writes, for the cube the target file describes:
+``cube.pdf`` (one page per face at true scale, plus the unfolded net when the cube fits
+on A3), ``face_<n>_id<id>.png`` (each face at ``--dpi``, with that DPI in the file),
+``cube_layout.png`` (which tag goes where) and ``target.yaml`` (the target file used).
+"""
+
+from __future__ import annotations
+
+import io
+import sys
+from pathlib import Path
+
+from cubeloc.errors import InputFileError
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("generate", help="printable targets at true physical scale (cube, board)")
+    kinds = parser.add_subparsers(dest="kind", metavar="KIND", required=True)
+    register_cube(kinds)
+    register_board(kinds)
+
+
+def register_cube(kinds) -> None:
+    parser = kinds.add_parser(
+        "cube", help="the faces of a target cube: PDF at true scale and PNG per face",
+        description="Printable faces of the cube a target file describes (its 'cube:' shorthand).",
+    )
+    parser.add_argument("--target", required=True, metavar="FILE", help="target YAML with the cube shorthand")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
+    parser.add_argument("--dpi", type=float, default=300.0, help="resolution of the PNGs and the PDF (default 300)")
+    parser.set_defaults(func=run_cube)
+
+
+def _output_directory(out: str) -> Path:
+    directory = Path(out)
+    if directory.exists() and not directory.is_dir():
+        raise InputFileError(f"--out {directory}: exists and is not a directory")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputFileError(f"--out {directory}: cannot create the directory ({exc.strerror})") from None
+    return directory
+
+
+def _png_bytes(image, dpi: float) -> bytes:
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG", dpi=(dpi, dpi))
+    return buffer.getvalue()
+
+
+def run_cube(args) -> int:
+    from cubeloc.atomic import atomic_write_bytes, atomic_write_text
+    from positioning import printable
+    from positioning.target import load_target
+
+    if not 72 <= args.dpi <= 2400:
+        raise InputFileError(f"--dpi {args.dpi:g}: choose a printer resolution between 72 and 2400")
+    target = load_target(args.target)
+    if target.cube is None:
+        raise InputFileError(
+            f"{args.target}: lists explicit tags, not the 'cube:' shorthand; "
+            "cubeloc generate cube prints cubes (cube: {side, tag_size, ids})"
+        )
+    directory = _output_directory(args.out)
+    sheets = printable.face_sheets(target, args.dpi)
+    net = printable.net_sheet(target, args.dpi)
+    pages = [sheet.page for sheet in sheets] + ([net] if net is not None else [])
+    # Render everything in memory first: a failure leaves no half set of files.
+    pdf = io.BytesIO()
+    pages[0].save(pdf, format="PDF", save_all=True, append_images=pages[1:], resolution=args.dpi)
+    files = {"cube.pdf": pdf.getvalue()}
+    for index, sheet in enumerate(sheets):
+        files[f"face_{index}_id{sheet.tag_id}.png"] = _png_bytes(sheet.face_image, args.dpi)
+    files["cube_layout.png"] = _png_bytes(printable.cube_layout_picture(target), 96)
+    for name, data in files.items():
+        atomic_write_bytes(directory / name, data)
+    atomic_write_text(directory / "target.yaml", Path(args.target).read_text(encoding="utf-8"))
+    cube = target.cube
+    net_note = ", then the unfolded net on A3 landscape" if net is not None else ""
+    print(
+        f"wrote {directory}/cube.pdf ({len(sheets)} face pages on {sheets[0].page_name}{net_note}, "
+        f"{args.dpi:g} dpi), {len(sheets)} face PNGs, cube_layout.png, target.yaml: "
+        f"cube {cube.side_m * 1000:.1f} mm, tags {cube.tag_size_m * 1000:.1f} mm (outer black border); "
+        "print at 100 % (actual size) and check the 100 mm bar",
+        file=sys.stdout,
+    )
+    return 0
+
+
+def register_board(kinds) -> None:
+    from calib.boards import BOARD_HELP, DEFAULT_BOARD
+
+    parser = kinds.add_parser(
+        "board", help="a calibration board for `cubeloc calibrate`: PDF (or PNG) at true scale",
+        description="A calibration board on the smallest A page that holds it, at true scale, "
+        "with its --board spec and a 100 mm check bar printed under it.",
+    )
+    parser.add_argument("--board", default=DEFAULT_BOARD, metavar="SPEC", help=BOARD_HELP + f" (default {DEFAULT_BOARD})")
+    parser.add_argument("--out", required=True, metavar="FILE", help="output .pdf (true scale) or .png")
+    parser.add_argument("--dpi", type=float, default=600.0, help="printer resolution (default 600)")
+    parser.add_argument("--force", action="store_true", help="replace an existing file")
+    parser.set_defaults(func=run_board)
+
+
+def run_board(args) -> int:
+    from calib.boards import parse_board
+    from calib.printable_board import board_sheet, sheet_bytes
+    from cubeloc.atomic import atomic_write_bytes
+
+    out = Path(args.out)
+    file_format = out.suffix.lower().lstrip(".")
+    if file_format not in ("pdf", "png"):
+        raise InputFileError(f"--out {out}: give a .pdf (true scale) or a .png file name")
+    if not 72 <= args.dpi <= 2400:
+        raise InputFileError(f"--dpi {args.dpi:g}: choose a printer resolution between 72 and 2400")
+    if out.exists() and not args.force:
+        raise InputFileError(f"{out}: already exists; use --force to replace it")
+    if not out.parent.is_dir():
+        raise InputFileError(f"--out {out}: directory {out.parent} does not exist")
+    board = parse_board(args.board)
+    sheet = board_sheet(board, args.dpi)
+    atomic_write_bytes(out, sheet_bytes(sheet, file_format))
+    width_m, height_m = board.extent_m
+    print(
+        f"wrote {out}: {board.description} ({width_m * 1000:.0f} x {height_m * 1000:.0f} mm) on {sheet.page}, "
+        f"{args.dpi:g} dpi; print at 100 % (actual size), check the 100 mm bar, then "
+        f"cubeloc calibrate --board {board.text} ..."
+    )
+    return 0

@@ -1,0 +1,114 @@
+"""``cubeloc pose --target T --calib C IMAGE...``: the single-frame target pose per image.
+
+Prints one JSON object per image (interfaces.md): ``{"image", "ok": true, "position",
+"orientation", "planes", "tags", "reproj_rms_px", "covariance", ...}`` or ``{"image",
+"ok": false, "reason", "detail"}`` when the image gives no pose. Every image is checked
+before the first line is printed, so a bad file (not an image, empty, 16-bit, the wrong
+size for the calibration) stops the command with one line and exit 2, and nothing
+half-done is printed. Each image is solved on its own (no region prediction between them).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from cubeloc.errors import InputFileError
+
+# Pillow image modes that hold 8-bit grey or can be turned into it without loss of meaning.
+EIGHT_BIT_MODES = {"L", "P", "RGB", "RGBA", "LA", "1", "CMYK", "YCbCr"}
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "pose", help="single-frame target pose per image, one JSON object per line",
+        description="The camera pose in the target's frame from each image alone (3 faces: full "
+                    "pose; 2 faces: flagged planes=2; 1 face: no pose).",
+    )
+    parser.add_argument("--target", required=True, metavar="FILE", help="target definition YAML")
+    parser.add_argument("--calib", required=True, metavar="FILE", help="camera_info YAML of the camera")
+    parser.add_argument("--no-two-faces", action="store_true", help="refuse poses from two faces")
+    parser.add_argument("--max-reproj-rms", type=float, default=1.5, metavar="PX",
+                        help="refuse poses whose reprojection RMS exceeds this (default 1.5 px)")
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="8-bit images (PNG, JPEG, ...)")
+    parser.set_defaults(func=run)
+
+
+def check_image(path: Path, width: int, height: int) -> None:
+    """Raise InputFileError unless ``path`` is an 8-bit image of the calibrated size."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise InputFileError(f"{path}: image not found")
+    if path.stat().st_size == 0:
+        raise InputFileError(f"{path}: empty file, not an image")
+    try:
+        with Image.open(path) as image:
+            mode, size = image.mode, image.size
+    except UnidentifiedImageError:
+        raise InputFileError(f"{path}: not an image Pillow or OpenCV can read (PNG, JPEG, TIFF, ...)") from None
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read image ({exc})") from None
+    if mode not in EIGHT_BIT_MODES:
+        raise InputFileError(
+            f"{path}: {mode} image (16-bit or float); cubeloc pose needs 8-bit images, "
+            "as the camera delivers Mono8: convert it first"
+        )
+    if size != (width, height):
+        raise InputFileError(
+            f"{path}: image is {size[0]}x{size[1]} but the calibration is for {width}x{height}"
+        )
+
+
+def load_grey(path: Path):
+    """(H, W) uint8 grey image."""
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:  # Pillow read the header but OpenCV cannot decode the data
+        raise InputFileError(f"{path}: OpenCV cannot decode this image")
+    return image
+
+
+def result_line(image: str, result) -> dict:
+    """The JSON object for one image."""
+    estimate = result.estimate
+    if estimate is None:
+        return {"image": image, "ok": False, "reason": result.status, "detail": result.detail,
+                "tags_seen": list(result.tags_seen)}
+    T = estimate.T_world_camera
+    return {
+        "image": image,
+        "ok": True,
+        "position": [round(float(v), 6) for v in T.translation],
+        "orientation": [round(float(v), 8) for v in T.quaternion()],
+        "planes": estimate.planes,
+        "tags": list(estimate.tag_ids),
+        "reproj_rms_px": round(estimate.reproj_rms_px, 4),
+        "covariance": [float(f"{v:.6g}") for v in estimate.covariance.reshape(-1)],
+    }
+
+
+def run(args) -> int:
+    from calib.camera_info import read_camera_info
+    from daemon.logs import configure_logging
+    from positioning.single_frame import TargetPoseProcessor
+    from positioning.target import load_target
+    from positioning.target_pose import PoseOptions
+
+    configure_logging("warning", "console", stream=sys.stderr)  # stdout is for the JSON lines
+    target = load_target(args.target)
+    calibration = read_camera_info(args.calib)
+    if not args.max_reproj_rms > 0:
+        raise InputFileError(f"--max-reproj-rms {args.max_reproj_rms}: must be a positive number of pixels")
+    paths = [Path(p) for p in args.images]
+    for path in paths:
+        check_image(path, calibration.width, calibration.height)
+    options = PoseOptions(allow_two_faces=not args.no_two_faces, max_reproj_rms_px=args.max_reproj_rms)
+    processor = TargetPoseProcessor(target, calibration, options)
+    for seq, path in enumerate(paths):
+        processor.reset()  # images are independent views
+        result = processor.process(load_grey(path), 0, seq)
+        print(json.dumps(result_line(str(path), result)), flush=True)
+    return 0

@@ -1,0 +1,299 @@
+"""AprilTag detection: the AprilTag 3 C library through ``robotpy-apriltag``.
+
+The binding was chosen by measurement (docs/detector_choice.md): of pupil-apriltags,
+pyapriltags, robotpy-apriltag and OpenCV's aruco module with the AprilTag dictionary, it
+is the one that finds all 47 reference tags of the real photographs (46 within 0.1 px of
+the library's own reference corners), and the AprilTag 3 bindings beat aruco's corners by
+a factor of 4-8 in camera-position error on cube renders.
+
+Two conventions are converted here, once, so nothing downstream knows about them:
+
+* pixels: the C library puts the centre of the top-left pixel at (0.5, 0.5); OpenCV (and
+  cubeloc) at (0, 0). We subtract 0.5.
+* corner order: the library wraps the corners counter-clockwise in its own tag frame
+  (in the image of an upright tag: TR, TL, BL, BR). cubeloc uses TL, TR, BR, BL of the tag
+  printed upright, the order of ``cv2.aruco`` for a ``generateImageMarker`` image.
+
+One ``TagDetector`` should live as long as the process: creating detectors is expensive,
+and one binding was seen to crash in the destructor of a detector collected while another
+one was alive (tests/test_detection.py exercises that lifecycle with this binding).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from positioning.target import KNOWN_FAMILIES
+
+# Library corner index for each of our TL, TR, BR, BL (see the module docstring).
+LIBRARY_TO_UPRIGHT = np.array([1, 0, 3, 2])
+LIBRARY_PIXEL_OFFSET = 0.5  # library pixel-centre convention minus OpenCV's
+# Cells across a tag, black border included (the tag size spans these).
+FAMILY_CELLS = {"tag36h11": 8, "tag36h10": 8, "tag25h9": 7, "tag16h5": 6}
+
+
+@dataclass(frozen=True)
+class TagDetection:
+    """One decoded tag in an image."""
+
+    tag_id: int
+    corners: np.ndarray  # (4, 2) float64 pixels (OpenCV convention), TL TR BR BL as printed
+    decision_margin: float  # the library's decode confidence; larger is better
+    hamming: int  # bits corrected to decode
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.corners.mean(axis=0)
+
+
+@dataclass(frozen=True)
+class DetectorOptions:
+    """Settings of the AprilTag 3 pipeline (the paper's values by default).
+
+    ``quad_decimate`` 2 halves 1280x1024 to 640x512 for the quad search; ``refine_edges``
+    then fits the edges on the full-resolution image, so corner accuracy is kept.
+    """
+
+    quad_decimate: float = 2.0
+    quad_sigma: float = 0.0
+    refine_edges: bool = True
+    decode_sharpening: float = 0.25
+    max_hamming: int = 1  # bits the decoder may correct; more admits false decodes
+    min_decision_margin: float = 10.0
+    min_cluster_pixels: int = 5  # the C library's default (robotpy's own is 300)
+    critical_angle_deg: float = 10.0  # quads with a sharper corner angle are rejected
+    threads: int = 1
+
+
+class TagDetector:
+    """A long-lived AprilTag detector for one family.
+
+    ``detect(image, roi)`` searches the whole image or only ``roi = (x0, y0, x1, y1)``
+    (pixel bounds, clipped to the image); corners always come back in full-image pixels.
+    """
+
+    def __init__(self, family: str = "tag36h11", options: DetectorOptions | None = None) -> None:
+        import robotpy_apriltag
+
+        if family not in KNOWN_FAMILIES:
+            raise ValueError(f"unrecognised tag family {family!r}; families I know: {', '.join(KNOWN_FAMILIES)}")
+        self.family = family
+        self.options = options or DetectorOptions()
+        o = self.options
+        detector = robotpy_apriltag.AprilTagDetector()
+        if not detector.addFamily(family, o.max_hamming):
+            raise ValueError(f"the AprilTag library does not know the family {family!r}")
+        config = detector.getConfig()
+        config.quadDecimate = o.quad_decimate
+        config.quadSigma = o.quad_sigma
+        config.refineEdges = o.refine_edges
+        config.decodeSharpening = o.decode_sharpening
+        config.numThreads = o.threads
+        detector.setConfig(config)
+        quad = detector.getQuadThresholdParameters()
+        quad.minClusterPixels = o.min_cluster_pixels
+        quad.criticalAngle = math.radians(o.critical_angle_deg)
+        detector.setQuadThresholdParameters(quad)
+        self._detector = detector
+        self._decimate = o.quad_decimate
+
+    def detect(self, image: np.ndarray, roi: tuple[int, int, int, int] | None = None,
+               decimate: float | None = None) -> list[TagDetection]:
+        """Decoded tags of ``image`` ((H, W) uint8), sorted by id, surest decode first.
+
+        An id may appear more than once (two prints, a reflection); choosing is the
+        caller's business. ``decimate`` overrides ``options.quad_decimate`` for this call
+        (1 finds tags that decimation loses next to a bright background, at 4x the cost:
+        for small regions).
+        """
+        if image.ndim != 2 or image.dtype != np.uint8:
+            raise ValueError(f"expected an (H, W) uint8 image, got {image.dtype} {image.shape}")
+        x0, y0 = 0, 0
+        if roi is not None:
+            height, width = image.shape
+            x0, y0 = max(0, int(roi[0])), max(0, int(roi[1]))
+            x1, y1 = min(width, int(roi[2])), min(height, int(roi[3]))
+            if x1 - x0 < 8 or y1 - y0 < 8:
+                return []
+            image = image[y0:y1, x0:x1]
+        # The binding reads the buffer row by row: a crop must be made contiguous.
+        image = np.ascontiguousarray(image)
+        self._set_decimate(decimate if decimate is not None else self.options.quad_decimate)
+        corner_buffer = [0.0] * 8
+        found = []
+        for raw in self._detector.detect(image):
+            margin = float(raw.getDecisionMargin())
+            if margin < self.options.min_decision_margin:
+                continue
+            library_corners = np.array(raw.getCorners(corner_buffer), dtype=np.float64).reshape(4, 2)
+            corners = library_corners[LIBRARY_TO_UPRIGHT] - LIBRARY_PIXEL_OFFSET + (x0, y0)
+            found.append(TagDetection(int(raw.getId()), corners, margin, int(raw.getHamming())))
+        found.sort(key=lambda d: (d.tag_id, -d.decision_margin))
+        return found
+
+    def _set_decimate(self, decimate: float) -> None:
+        if decimate != self._decimate:
+            config = self._detector.getConfig()
+            config.quadDecimate = float(decimate)
+            self._detector.setConfig(config)
+            self._decimate = decimate
+
+    def close(self) -> None:
+        """Free the library's detector now (it is also freed when collected)."""
+        self._detector.close()
+
+
+# Edge refinement ------------------------------------------------------------------------
+#
+# The library's own edge refinement leaves ~0.1 px of corner noise on a clean 1280x1024
+# render (a few mm of camera position at 4 m). Every outer edge of a tag is a straight
+# black/white step about one cell wide on each side, so we can do much better: find the
+# step's 50 % crossing on many short profiles across each edge, undistort those points,
+# fit a straight line per edge (straight only without distortion), intersect neighbours,
+# and distort the corners back.
+
+EDGE_END_FRACTION = 0.12  # skip the edge ends, where the neighbouring edge's blur reaches
+PROFILE_STEP_PX = 0.25
+MIN_PROFILE_CONTRAST = 25.0  # grey levels between the black border and the white margin
+MIN_EDGE_SAMPLES = 6
+
+
+def _edge_points(image_f32: np.ndarray, corners: np.ndarray, half_width_px: float) -> list[np.ndarray]:
+    """Sub-pixel points (K_k, 2) of the black-to-white step along each edge k -> k+1."""
+    directions = np.roll(corners, -1, axis=0) - corners
+    length = float(np.linalg.norm(directions, axis=1).min())
+    count = max(MIN_EDGE_SAMPLES, int(length * (1 - 2 * EDGE_END_FRACTION)))
+    fractions = np.linspace(EDGE_END_FRACTION, 1 - EDGE_END_FRACTION, count)
+    units = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    outward = np.column_stack([units[:, 1], -units[:, 0]])  # corners turn clockwise on screen
+    across = np.arange(-half_width_px, half_width_px + 1e-9, PROFILE_STEP_PX)
+    base = corners[:, None, :] + fractions[None, :, None] * directions[:, None, :]  # (4, K, 2)
+    samples = base[:, :, None, :] + across[None, None, :, None] * outward[:, None, None, :]  # (4, K, M, 2)
+    flat = samples.reshape(4 * count, len(across), 2).astype(np.float32)
+    profiles = cv2.remap(image_f32, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE).reshape(4, count, len(across))
+    quarter = max(2, len(across) // 4)
+    dark = profiles[..., :quarter].mean(axis=2)  # inside: the black border
+    bright = profiles[..., -quarter:].mean(axis=2)  # outside: the white margin
+    above = profiles >= ((dark + bright) / 2.0)[..., None]
+    rising = ~above[..., :-1] & above[..., 1:]  # dark-to-bright steps between samples
+    # Keep clean steps only: enough contrast and exactly one crossing (not noise, not a
+    # second edge, not glare or an occluder).
+    good = (bright - dark >= MIN_PROFILE_CONTRAST) & (rising.sum(axis=2) == 1)
+    edges = []
+    for k in range(4):
+        rows = np.flatnonzero(good[k])
+        if len(rows) < max(MIN_EDGE_SAMPLES, count // 2):  # not a clean edge over half its length
+            edges.append(np.empty((0, 2)))
+            continue
+        # The step's position from its area, not from where it crosses 50 %: pixels
+        # average light over their area, which keeps the area of a step (blurred or not)
+        # but pulls the 50 % crossing towards pixel centres by up to 0.08 px. The plateau
+        # levels are per edge (means), so their noise does not enter each profile.
+        dark_level, bright_level = dark[k, rows].mean(), bright[k, rows].mean()
+        normalised = (profiles[k, rows] - dark_level) / (bright_level - dark_level)
+        area = np.sum(normalised[:, 1:] + normalised[:, :-1], axis=1) * (0.5 * PROFILE_STEP_PX)
+        offset = across[-1] - area
+        edges.append(base[k, rows] + offset[:, None] * outward[k])
+    return edges
+
+
+def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(point, unit direction) of the total-least-squares line, one outlier pass."""
+    for _ in range(2):
+        if len(points) < MIN_EDGE_SAMPLES:
+            return None
+        centre = points.mean(axis=0)
+        dx, dy = (points - centre).T
+        sxx, syy, sxy = dx @ dx, dy @ dy, dx @ dy
+        # Direction of the largest spread of a 2x2 scatter matrix, in closed form.
+        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+        direction = np.array([np.cos(angle), np.sin(angle)])
+        distance = np.abs(dx * -direction[1] + dy * direction[0])
+        spread = 1.25 * distance.mean() + 1e-12  # ~sigma for Gaussian scatter
+        keep = distance <= 3.0 * spread
+        if keep.all():
+            break
+        points = points[keep]
+    return centre, direction
+
+
+def _intersect(line_a, line_b) -> np.ndarray | None:
+    (pa, da), (pb, db) = line_a, line_b
+    matrix = np.column_stack([da, -db])
+    if abs(np.linalg.det(matrix)) < 1e-9:
+        return None
+    s, _ = np.linalg.solve(matrix, pb - pa)
+    return pa + s * da
+
+
+def refine_corners(image: np.ndarray, detection: TagDetection, camera_matrix: np.ndarray | None = None,
+                   distortion: np.ndarray | None = None, cells: int = 8, passes: int = 1) -> TagDetection | None:
+    """The detection with corners from straight lines fitted to its four outer edges.
+
+    With ``camera_matrix`` (and ``distortion``) the lines are fitted in undistorted
+    coordinates, where the edges really are straight. ``cells`` is the number of cells
+    across the tag including its black border (8 for tag36h11): profiles stay within
+    0.4 of a cell on either side. Returns the detection unchanged when the tag is too
+    small to gain from it, and None when its edges are not clean straight steps near the
+    library's quad (occlusion, glare, or a quad the library fitted to the wrong edges
+    while still decoding the id): such a detection should not be trusted.
+    """
+    # Work on a float copy of the tag's neighbourhood only (a whole frame costs ~1 ms).
+    low = np.floor(detection.corners.min(axis=0)).astype(int) - 12
+    high = np.ceil(detection.corners.max(axis=0)).astype(int) + 13
+    x0, y0 = max(low[0], 0), max(low[1], 0)
+    x1, y1 = min(high[0], image.shape[1]), min(high[1], image.shape[0])
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return detection
+    image_f32 = image[y0:y1, x0:x1].astype(np.float32)
+    shift = np.array([x0, y0], dtype=np.float64)
+    corners = detection.corners.copy()
+    for _ in range(passes):
+        size = float(np.mean(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)))
+        half_width = min(0.4 * size / cells, 4.0)
+        if half_width < 1.0:
+            return detection  # cells under ~2.5 px: the library's corners are as good
+        edges = _edge_points(image_f32, corners - shift, half_width)
+        counts = [len(points) for points in edges]
+        if min(counts) < MIN_EDGE_SAMPLES:
+            return None
+        points = np.concatenate(edges) + shift
+        if camera_matrix is not None:
+            points = _undistort(points, camera_matrix, distortion)
+        lines = []
+        for chunk in np.split(points, np.cumsum(counts)[:-1]):
+            line = _fit_line(chunk)
+            if line is None:
+                return None
+            lines.append(line)
+        new = []
+        for k in range(4):  # corner k is where edge k-1 (into it) meets edge k (out of it)
+            point = _intersect(lines[k - 1], lines[k])
+            if point is None:
+                return None
+            new.append(point)
+        new = np.array(new)
+        if camera_matrix is not None:
+            new = _distort(new, camera_matrix, distortion)
+        if np.abs(new - detection.corners).max() > max(2.0, 0.05 * size):
+            return None  # the edges are not where the library put them: a bad quad
+        corners = new
+    return TagDetection(detection.tag_id, corners, detection.decision_margin, detection.hamming)
+
+
+def _undistort(pixels: np.ndarray, camera_matrix: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
+    identity = np.eye(3)
+    return cv2.undistortPoints(pixels.reshape(-1, 1, 2), camera_matrix, distortion, None, identity, identity,
+                               criteria).reshape(-1, 2)
+
+
+def _distort(normalised: np.ndarray, camera_matrix: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:
+    rays = np.column_stack([normalised, np.ones(len(normalised))])
+    pixels, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), camera_matrix, distortion)
+    return pixels.reshape(-1, 2)

@@ -1,0 +1,410 @@
+"""The camera's pose from the detected tags of one target in one image (the paper's Fig. 7).
+
+EPnP on all corners of the visible tags (distortion passed to the solver, so the corners
+are undistorted with the calibration), then Levenberg-Marquardt on the pixel residuals.
+No RANSAC: decoded ids are trustworthy, and a wrong pose shows in the residuals, which
+gate it. A single plane is ambiguous (two poses explain it almost equally well), so one
+face gives no pose unless allowed, and then only with a previous pose to choose between
+the two.
+
+Pure: arrays in, frozen dataclasses out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from calib.camera_info import CameraCalibration
+from positioning.detection import TagDetection
+from positioning.geometry import Transform
+from positioning.target import Target
+
+# Tags whose normals are closer than this lie on one plane (a face) for counting planes.
+SAME_PLANE_DEG = 10.0
+# Floor on the corner noise used for the covariance, so a perfect fit still has one.
+MIN_CORNER_SIGMA_PX = 0.02
+# The tag-size consistency check warns beyond this relative disagreement.
+SCALE_WARNING_FRACTION = 0.02
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """How much of the target a pose needs, and when residuals reject it.
+
+    The first three mirror ``[positioning]`` of the daemon configuration.
+    """
+
+    allow_two_faces: bool = True
+    allow_one_face: bool = False  # only with a previous pose to resolve the ambiguity
+    max_reproj_rms_px: float = 1.5
+    max_one_face_jump_m: float = 0.25  # a one-face pose further than this from the last is refused
+    # A tag seen more obliquely than this (normal to line of sight) and whose image is
+    # narrower than ``min_oblique_edge_px`` has poor corners: it is left out when the others
+    # still span two planes, and a pose that would rest on it is refused.
+    max_tag_angle_deg: float = 70.0
+    min_oblique_edge_px: float = 40.0
+
+
+class Refusal(str, enum.Enum):
+    """Why there is no pose (the ``status`` word of a FrameResult)."""
+
+    NO_TARGET = "no_target"
+    ONE_FACE = "one_face"
+    TWO_FACES = "two_faces"  # two faces seen but allow_two_faces is off
+    SOLVER = "solver"
+    REPROJECTION = "reprojection"
+    OBLIQUE = "oblique"  # the second plane is a tag seen almost edge-on and small
+
+
+@dataclass(frozen=True)
+class TargetPose:
+    """A camera pose in the target (world) frame from one image."""
+
+    T_world_camera: Transform
+    planes: int
+    tag_ids: tuple[int, ...]
+    reproj_rms_px: float
+    covariance: np.ndarray | None  # (6, 6) x y z, rotation about world X Y Z (ROS order)
+    residuals_px: np.ndarray  # (4N, 2) observed minus predicted corners
+    rvec: np.ndarray | None = None  # the solver's T_camera_world, for the covariance
+    tvec: np.ndarray | None = None
+    points_world: np.ndarray | None = None  # (4N, 3) corners used
+
+
+@dataclass(frozen=True)
+class PoseOutcome:
+    """A pose, or the reason there is none (``refusal``) with a human ``detail``."""
+
+    pose: TargetPose | None
+    refusal: Refusal | None = None
+    detail: str = ""
+    rejected: TargetPose | None = None  # the pose the residuals refused (REPROJECTION)
+
+
+@dataclass(frozen=True)
+class ScaleCheck:
+    """Tag size against the layout, as the detections see it.
+
+    ``tag_scale`` is the factor on every tag's size (about its centre) that fits the image
+    best; 1 when the configured tag size matches the printed one. For a cube,
+    ``implied_side_m`` is the cube edge that the detections imply if the tag size is right.
+    """
+
+    tag_scale: float
+    implied_side_m: float | None
+    configured_side_m: float | None
+    agrees: bool
+    configured_tag_m: float | None = None
+
+    def message(self) -> str:
+        if self.implied_side_m is not None:
+            tag_mm = self.configured_tag_m * self.tag_scale * 1000
+            return (
+                f"the tags look {self.tag_scale:.3f} times the configured size: printed tags of "
+                f"{tag_mm:.1f} mm if the {self.configured_side_m * 1000:.1f} mm cube edge is right, or a "
+                f"{self.implied_side_m * 1000:.1f} mm cube edge if the {self.configured_tag_m * 1000:.1f} mm "
+                "tag size is: tag_size is the outer edge of the black border"
+            )
+        return (
+            f"the tags look {self.tag_scale:.3f} times the configured size relative to their "
+            "layout: check the tag size (outer edge of the black border)"
+        )
+
+
+def count_planes(target: Target, tag_ids: tuple[int, ...] | list[int]) -> int:
+    """Distinct planes among the given tags (tags with parallel normals share one)."""
+    normals: list[np.ndarray] = []
+    cos_limit = np.cos(np.radians(SAME_PLANE_DEG))
+    for tag_id in tag_ids:
+        normal = target.tag(tag_id).normal
+        if all(float(normal @ other) < cos_limit for other in normals):
+            normals.append(normal)
+    return len(normals)
+
+
+def unique_target_detections(detections: list[TagDetection], target: Target) -> list[TagDetection]:
+    """The detections of the target's tags, one per id (the surest decode), by id.
+
+    Anything else in view is ignored. A second copy of an id (a reflection, a stray
+    print) loses to the surer decode; if it was the wrong one, the residuals gate it.
+    """
+    best: dict[int, TagDetection] = {}
+    for detection in detections:
+        if not target.has(detection.tag_id):
+            continue
+        kept = best.get(detection.tag_id)
+        if kept is None or detection.decision_margin > kept.decision_margin:
+            best[detection.tag_id] = detection
+    return [best[tag_id] for tag_id in sorted(best)]
+
+
+def _project(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
+    projected, _ = cv2.projectPoints(points_world, rvec, tvec, calibration.camera_matrix, calibration.distortion)
+    return projected.reshape(-1, 2)
+
+
+def _refine(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+            calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    rvec, tvec = cv2.solvePnPRefineLM(
+        points_world, pixels, calibration.camera_matrix, calibration.distortion,
+        rvec.copy(), tvec.copy(), criteria,
+    )
+    return rvec.reshape(3), tvec.reshape(3)
+
+
+def _world_camera_vector(rvec: np.ndarray, tvec: np.ndarray, reference_rotation: np.ndarray) -> np.ndarray:
+    """(camera position in world, world-frame rotation vector from ``reference_rotation``).
+
+    The rotation vector is the first-order one, vee((D - D^T) / 2) of the small rotation
+    D = R_world_camera @ reference^T: exact enough for a numerical derivative, and cheap."""
+    rotation, _ = cv2.Rodrigues(rvec)  # R_camera_world
+    position = -rotation.T @ tvec
+    d = rotation.T @ reference_rotation.T
+    delta = 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
+    return np.concatenate([position, delta])
+
+
+def _covariance(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, residuals: np.ndarray,
+                calibration: CameraCalibration) -> np.ndarray:
+    """6x6 covariance of T_world_camera (ROS order) from the Jacobian at the solution.
+
+    Corner noise is estimated from the residuals (with a floor); the covariance of the
+    solver's (rvec, tvec) is then carried to (position, world rotation) numerically.
+    """
+    _, jacobian = cv2.projectPoints(points_world, rvec, tvec, calibration.camera_matrix, calibration.distortion)
+    jacobian = jacobian[:, :6]  # d(pixels)/d(rvec, tvec)
+    dof = max(residuals.size - 6, 1)
+    sigma2 = max(float(np.sum(residuals**2)) / dof, MIN_CORNER_SIGMA_PX**2)
+    cov_solver = sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
+    reference = cv2.Rodrigues(rvec)[0].T  # R_world_camera at the solution
+    x0 = np.concatenate([rvec, tvec])
+    step = 1e-7
+    g = np.empty((6, 6))
+    for k in range(6):
+        dx = np.zeros(6)
+        dx[k] = step
+        plus = _world_camera_vector((x0 + dx)[:3], (x0 + dx)[3:], reference)
+        minus = _world_camera_vector((x0 - dx)[:3], (x0 - dx)[3:], reference)
+        g[:, k] = (plus - minus) / (2 * step)
+    cov = g @ cov_solver @ g.T
+    return (cov + cov.T) / 2.0
+
+
+def _make_pose(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+               calibration: CameraCalibration, planes: int, tag_ids: tuple[int, ...]) -> TargetPose:
+    residuals = pixels - _project(points_world, rvec, tvec, calibration)
+    rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
+    return TargetPose(
+        T_world_camera=Transform.from_rvec_tvec(rvec, tvec).inverse(),
+        planes=planes,
+        tag_ids=tag_ids,
+        reproj_rms_px=rms,
+        covariance=None,  # filled in for the pose that is returned (with_covariance)
+        residuals_px=residuals,
+        rvec=rvec,
+        tvec=tvec,
+        points_world=points_world,
+    )
+
+
+def _one_face(points_world: np.ndarray, pixels: np.ndarray, calibration: CameraCalibration,
+              previous: Transform) -> tuple[np.ndarray, np.ndarray] | None:
+    """The IPPE solution of a single plane nearest the previous pose (there are two)."""
+    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+        points_world, pixels, calibration.camera_matrix, calibration.distortion, flags=cv2.SOLVEPNP_IPPE
+    )
+    if count == 0:
+        return None
+
+    def distance(index: int) -> float:
+        T = Transform.from_rvec_tvec(rvecs[index], tvecs[index]).inverse()
+        return float(np.linalg.norm(T.translation - previous.translation)) + 0.1 * previous.rotation_angle_to(T)
+
+    best = min(range(count), key=distance)
+    return np.asarray(rvecs[best], dtype=np.float64).reshape(3), np.asarray(tvecs[best], dtype=np.float64).reshape(3)
+
+
+def quad_width_px(corners: np.ndarray) -> float:
+    """The narrow width of a quad (area over its longest edge): how many pixels the tag
+    really spans across its foreshortened direction."""
+    x, y = corners[:, 0], corners[:, 1]
+    area = 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+    longest = float(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1).max())
+    return area / longest if longest > 0 else 0.0
+
+
+def oblique_tags(pose: TargetPose, detections: list[TagDetection], target: Target, options: PoseOptions) -> set[int]:
+    """Ids of the pose's tags seen more than ``max_tag_angle_deg`` from their normal whose
+    image is also narrower than ``min_oblique_edge_px`` (their corners are poor)."""
+    cos_limit = np.cos(np.radians(options.max_tag_angle_deg))
+    camera = pose.T_world_camera.translation
+    oblique = set()
+    for detection in detections:
+        if detection.tag_id not in pose.tag_ids:
+            continue
+        tag = target.tag(detection.tag_id)
+        sight = camera - tag.center
+        if (float(tag.normal @ sight) < cos_limit * float(np.linalg.norm(sight))
+                and quad_width_px(detection.corners) < options.min_oblique_edge_px):
+            oblique.add(detection.tag_id)
+    return oblique
+
+
+def single_plane_candidates(detections: list[TagDetection], target: Target,
+                            calibration: CameraCalibration) -> list[Transform]:
+    """The (up to two) T_world_camera that explain tags on one plane: where to look for
+    the other faces when only one was found."""
+    ours = unique_target_detections(detections, target)
+    if not ours:
+        return []
+    tag_ids = tuple(d.tag_id for d in ours)
+    pixels = np.concatenate([d.corners for d in ours]).astype(np.float64)
+    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+        target.corners_of(tag_ids), pixels, calibration.camera_matrix, calibration.distortion,
+        flags=cv2.SOLVEPNP_IPPE,
+    )
+    return [Transform.from_rvec_tvec(rvecs[k], tvecs[k]).inverse() for k in range(count)]
+
+
+def estimate_target_pose(
+    detections: list[TagDetection],
+    target: Target,
+    calibration: CameraCalibration,
+    options: PoseOptions | None = None,
+    previous: Transform | None = None,
+) -> PoseOutcome:
+    """The camera pose from the detections of ``target``'s tags (others are ignored).
+
+    ``previous`` (T_world_camera of an earlier frame) is used only to choose between the
+    two poses of a single face when ``options.allow_one_face`` is set. The returned pose
+    carries its 6x6 covariance (computed once, for the pose returned).
+    """
+    outcome = _estimate(detections, target, calibration, options, previous)
+    if outcome.pose is None:
+        return outcome
+    pose = outcome.pose
+    covariance = _covariance(pose.points_world, pose.rvec, pose.tvec, pose.residuals_px, calibration)
+    return dataclasses.replace(outcome, pose=dataclasses.replace(pose, covariance=covariance))
+
+
+def _estimate(
+    detections: list[TagDetection],
+    target: Target,
+    calibration: CameraCalibration,
+    options: PoseOptions | None = None,
+    previous: Transform | None = None,
+) -> PoseOutcome:
+    options = options or PoseOptions()
+    ours = unique_target_detections(detections, target)
+    if not ours:
+        return PoseOutcome(None, Refusal.NO_TARGET, "no tag of the target in view")
+    outcome = _solve(ours, target, calibration, options, previous)
+    if outcome.pose is not None:
+        oblique = oblique_tags(outcome.pose, ours, target, options)
+        if oblique:
+            kept = [d for d in ours if d.tag_id not in oblique]
+            if count_planes(target, [d.tag_id for d in kept]) >= 2:
+                steeper = _solve(kept, target, calibration, options, previous)
+                if steeper.pose is not None:
+                    return PoseOutcome(steeper.pose, None, f"tags {sorted(oblique)} left out: seen too obliquely")
+            if outcome.pose.planes >= 2:
+                return PoseOutcome(None, Refusal.OBLIQUE,
+                                   f"tags {sorted(oblique)} are seen almost edge-on and small, and the "
+                                   "others lie on one plane")
+        return outcome
+    if outcome.refusal is not Refusal.REPROJECTION or len(ours) < 3:
+        return outcome
+    # One bad quad (a grazing face, a partly hidden tag) should not cost the whole pose:
+    # the best pose without one tag, if its residuals pass, with the planes it has left.
+    retries = [_solve([d for d in ours if d is not left_out], target, calibration, options, previous)
+               for left_out in ours]
+    passed = [r for r in retries if r.pose is not None]
+    if not passed:
+        return outcome
+    best = min(passed, key=lambda r: r.pose.reproj_rms_px)
+    dropped = sorted(set(d.tag_id for d in ours) - set(best.pose.tag_ids))
+    return PoseOutcome(best.pose, None, f"tag {dropped[0]} left out: {outcome.detail}")
+
+
+def _solve(ours: list[TagDetection], target: Target, calibration: CameraCalibration, options: PoseOptions,
+           previous: Transform | None) -> PoseOutcome:
+    tag_ids = tuple(d.tag_id for d in ours)
+    planes = count_planes(target, tag_ids)
+    points_world = target.corners_of(tag_ids)
+    pixels = np.concatenate([d.corners for d in ours]).astype(np.float64)
+
+    if planes == 1:
+        if not options.allow_one_face:
+            return PoseOutcome(None, Refusal.ONE_FACE, f"only one face in view (tags {list(tag_ids)}): a plane is ambiguous")
+        if previous is None:
+            return PoseOutcome(None, Refusal.ONE_FACE, "one face in view and no previous pose to resolve its ambiguity")
+        solution = _one_face(points_world, pixels, calibration, previous)
+        if solution is None:
+            return PoseOutcome(None, Refusal.SOLVER, "no pose fits the single face")
+        rvec, tvec = _refine(points_world, pixels, *solution, calibration)
+    else:
+        if planes == 2 and not options.allow_two_faces:
+            return PoseOutcome(None, Refusal.TWO_FACES, "two faces in view and two-face poses are disabled")
+        ok, rvec, tvec = cv2.solvePnP(
+            points_world, pixels, calibration.camera_matrix, calibration.distortion, flags=cv2.SOLVEPNP_EPNP
+        )
+        if not ok or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
+            return PoseOutcome(None, Refusal.SOLVER, "EPnP found no pose")
+        rvec, tvec = _refine(points_world, pixels, rvec.reshape(3), tvec.reshape(3), calibration)
+
+    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return PoseOutcome(None, Refusal.SOLVER, "the refinement diverged")
+    if np.any(Transform.from_rvec_tvec(rvec, tvec).apply(points_world)[:, 2] <= 0):
+        return PoseOutcome(None, Refusal.SOLVER, "the pose puts the target behind the camera")
+    pose = _make_pose(points_world, pixels, rvec, tvec, calibration, planes, tag_ids)
+    if not pose.reproj_rms_px <= options.max_reproj_rms_px:
+        return PoseOutcome(
+            None, Refusal.REPROJECTION,
+            f"reprojection RMS {pose.reproj_rms_px:.2f} px exceeds {options.max_reproj_rms_px} px",
+            rejected=pose,
+        )
+    if planes == 1 and previous is not None:
+        jump = float(np.linalg.norm(pose.T_world_camera.translation - previous.translation))
+        if jump > options.max_one_face_jump_m:
+            return PoseOutcome(None, Refusal.ONE_FACE, f"the one-face pose is {jump:.2f} m from the previous one")
+    return PoseOutcome(pose)
+
+
+def check_tag_scale(
+    detections: list[TagDetection], target: Target, calibration: CameraCalibration, pose: TargetPose
+) -> ScaleCheck | None:
+    """Fit one scale factor on the tags' sizes about their centres, with the pose.
+
+    Needs two planes or more (on one plane, tag size and distance trade off). A cube whose
+    tags are printed 5 % too large, or a tag_size given as the inner white square, shows
+    here as a scale far from 1.
+    """
+    ours = [d for d in detections if d.tag_id in pose.tag_ids]
+    if pose.planes < 2 or not ours:
+        return None
+    tag_ids = tuple(d.tag_id for d in ours)
+    corners = target.corners_of(tag_ids).reshape(-1, 4, 3)
+    centers = corners.mean(axis=1, keepdims=True)
+    offsets = (corners - centers).reshape(-1, 3)
+    centers = np.repeat(centers.reshape(-1, 3), 4, axis=0)
+    pixels = np.concatenate([d.corners for d in ours]).astype(np.float64)
+    T_camera_world = pose.T_world_camera.inverse()
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        points = centers + x[6] * offsets
+        return (_project(points, x[:3], x[3:6], calibration) - pixels).ravel()
+
+    start = np.concatenate([T_camera_world.rvec(), T_camera_world.translation, [1.0]])
+    fit = least_squares(residuals, start, method="lm", x_scale=np.concatenate([np.full(6, 0.01), [0.01]]))
+    scale = float(fit.x[6])
+    configured = target.cube.side_m if target.cube is not None else None
+    implied = configured / scale if configured is not None else None
+    tag_m = target.cube.tag_size_m if target.cube is not None else None
+    return ScaleCheck(scale, implied, configured, abs(scale - 1.0) <= SCALE_WARNING_FRACTION, tag_m)
