@@ -1,0 +1,154 @@
+"""Zhang calibration with OpenCV, dropping views whose error is far above the rest.
+
+``solve(views, image_size, options)`` runs ``cv2.calibrateCameraExtended``, looks at the
+per-view RMS reprojection errors, drops the worst view while it stands far above the
+median (a wrong board, a blurred or badly detected view bends every parameter), and
+solves again. Dropped views are named in the result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cubeloc.errors import CubelocError
+
+MIN_VIEWS = 5  # Zhang needs 3; five keep the standard deviations meaningful
+PARAMETER_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+MODELS = {"plumb_bob": 5, "rational_polynomial": 8}
+
+
+class CalibrationError(CubelocError):
+    """The calibration cannot be done from these views (the message says why and what to do)."""
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    model: str = "plumb_bob"  # or "rational_polynomial"
+    fix_principal_point: bool = False  # keep (cx, cy) at the image centre
+    fix_aspect_ratio: bool = False  # fx = fy
+    outlier_factor: float = 3.0  # a view is dropped above factor x median RMS ...
+    outlier_floor_px: float = 0.3  # ... and above median + this (so tiny errors stay)
+    max_dropped_fraction: float = 0.3  # never drop more than this share of the views
+
+    def flags(self) -> int:
+        flags = 0
+        if self.model == "rational_polynomial":
+            flags |= cv2.CALIB_RATIONAL_MODEL
+        if self.fix_principal_point:
+            flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+        if self.fix_aspect_ratio:
+            flags |= cv2.CALIB_FIX_ASPECT_RATIO
+        return flags
+
+
+@dataclass(frozen=True)
+class View:
+    """One view to solve with: the board points it shows."""
+
+    name: str  # image file name, for messages
+    image_points: np.ndarray  # (N, 2) float32
+    object_points: np.ndarray  # (N, 3) float32
+
+
+@dataclass(frozen=True)
+class ViewFit:
+    name: str
+    rms_px: float
+    points: int
+    rvec: np.ndarray  # (3,) board -> camera rotation (Rodrigues)
+    tvec: np.ndarray  # (3,) metres
+    residuals: np.ndarray  # (N, 2) observed - projected, px
+    image_points: np.ndarray  # (N, 2) observed, px
+
+
+@dataclass(frozen=True)
+class DroppedView:
+    name: str
+    rms_px: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class Solution:
+    image_size: tuple[int, int]  # (width, height)
+    model: str
+    camera_matrix: np.ndarray  # (3, 3)
+    distortion: np.ndarray  # (5,) or (8,)
+    rms_px: float  # over all points of the kept views
+    std: dict[str, float]  # one standard deviation of each estimated parameter
+    views: tuple[ViewFit, ...]  # the kept views
+    dropped: tuple[DroppedView, ...]
+    options: SolveOptions
+
+    @property
+    def points(self) -> int:
+        return sum(v.points for v in self.views)
+
+
+def _calibrate(views: list[View], image_size: tuple[int, int], options: SolveOptions):
+    camera_matrix = np.eye(3)
+    distortion = np.zeros(MODELS[options.model])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    try:
+        return cv2.calibrateCameraExtended(
+            [v.object_points.astype(np.float32) for v in views],
+            [v.image_points.astype(np.float32).reshape(-1, 1, 2) for v in views],
+            image_size, camera_matrix, distortion, flags=options.flags(), criteria=criteria,
+        )
+    except cv2.error as exc:
+        first = str(exc).strip().splitlines()[-1]
+        raise CalibrationError(
+            f"OpenCV could not solve the calibration from {len(views)} views ({first}); "
+            "add views with the board tilted and in different parts of the image"
+        ) from None
+
+
+def solve(views: list[View], image_size: tuple[int, int], options: SolveOptions | None = None) -> Solution:
+    """Calibrate from ``views``; drop outlier views one at a time and solve again."""
+    options = options or SolveOptions()
+    if options.model not in MODELS:
+        raise CalibrationError(f"unknown distortion model {options.model!r}; known: {', '.join(MODELS)}")
+    if len(views) < MIN_VIEWS:
+        raise CalibrationError(f"{len(views)} usable views; at least {MIN_VIEWS} are needed (20 or more is better)")
+    kept = list(views)
+    dropped: list[DroppedView] = []
+    max_dropped = int(options.max_dropped_fraction * len(views))
+    while True:
+        rms, k, d, rvecs, tvecs, std_intrinsics, _, per_view = _calibrate(kept, image_size, options)
+        errors = np.asarray(per_view, dtype=np.float64).reshape(-1)
+        median = float(np.median(errors))
+        threshold = max(options.outlier_factor * median, median + options.outlier_floor_px)
+        worst = int(np.argmax(errors))
+        if errors[worst] <= threshold or len(dropped) >= max_dropped or len(kept) <= MIN_VIEWS:
+            break
+        dropped.append(
+            DroppedView(
+                kept[worst].name, float(errors[worst]),
+                f"RMS {errors[worst]:.2f} px against a median of {median:.2f} px",
+            )
+        )
+        del kept[worst]
+    if not np.all(np.isfinite(k)) or not np.all(np.isfinite(d)) or k[0, 0] <= 0 or k[1, 1] <= 0:
+        raise CalibrationError("the solve diverged; add views with the board tilted and in different parts of the image")
+    d = np.asarray(d, dtype=np.float64).reshape(-1)[: MODELS[options.model]]
+    std_values = np.asarray(std_intrinsics, dtype=np.float64).reshape(-1)
+    names = PARAMETER_NAMES[: 4 + MODELS[options.model]]
+    std = {name: float(std_values[i]) for i, name in enumerate(names)}
+    fits = []
+    for view, rvec, tvec in zip(kept, rvecs, tvecs, strict=True):
+        projected, _ = cv2.projectPoints(view.object_points.astype(np.float64), rvec, tvec, k, d)
+        residuals = view.image_points.astype(np.float64) - projected.reshape(-1, 2)
+        fits.append(
+            ViewFit(
+                view.name, float(np.sqrt((residuals**2).sum(axis=1).mean())), len(residuals),
+                np.asarray(rvec).reshape(3), np.asarray(tvec).reshape(3), residuals,
+                view.image_points.astype(np.float64),
+            )
+        )
+    return Solution(
+        image_size=tuple(image_size), model=options.model, camera_matrix=np.asarray(k, dtype=np.float64),
+        distortion=d, rms_px=float(rms), std=std, views=tuple(fits), dropped=tuple(dropped), options=options,
+    )

@@ -1,0 +1,285 @@
+"""``cubeloc calibrate``: camera intrinsics and distortion from views of a board.
+
+Two sources, one solve (``calib.pipeline``):
+
+* ``--camera SOURCE``: live. Each frame is searched for the board; a view is kept only
+  when it is sharp and adds coverage (``calib.coverage``); one terminal line shows the
+  coverage bars and what to do next. Capture stops when coverage is good enough, at the
+  end of a recorded source, or on Ctrl-C / SIGTERM (then the views so far are solved if
+  there are enough, and nothing is written otherwise). The kept images and their corners
+  go to ``<out stem>.views/``, so ``--images '<stem>.views/*.png'`` re-solves them.
+* ``--images GLOB...``: any image set; corners are cached in ``corners.yaml`` next to
+  the images, so solving again (another model, a fixed principal point) is quick.
+
+Output: the camera_info YAML (``--out``, with the ``calibration:`` report block) and
+``<out stem>.report.png`` (residuals, coverage, per-view errors). Nothing is written when
+the solve fails; an existing output is replaced only with ``--force``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import glob
+import os
+import shutil
+import signal
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from cubeloc.errors import CubelocError, InputFileError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+MAX_TIMEOUTS = 10  # consecutive frame timeouts before giving up on the camera
+
+EPILOG = """\
+board specs (lengths in metres; or a YAML file with kind, cols, rows, size, ...):
+  charuco:11x8:0.030:0.022:DICT_5X5_100   ChArUco, counts SQUARES: 11 across, 8 down,
+                                          square 30 mm, marker 22 mm (the default board)
+  chessboard:9x6:0.025                    chessboard, counts INNER CORNERS (where four
+                                          squares meet): a board of 10x7 squares, 25 mm
+  circles:7x5:0.030[:DIAMETER]            circle grid, counts circles, 30 mm apart
+  acircles:4x11:0.020[:DIAMETER]          OpenCV's asymmetric grid: 4 circles per row,
+                                          11 rows 20 mm apart (40 mm within a row)
+Print a board with `cubeloc generate board --board SPEC --out board.pdf` and measure it.
+
+examples:
+  cubeloc calibrate --camera aravis --board charuco:11x8:0.030:0.022:DICT_5X5_100 --out cam.yaml
+  cubeloc calibrate --images 'cam.views/*.png' --board charuco:11x8:0.030:0.022:DICT_5X5_100 \\
+      --out cam.yaml --force --model rational_polynomial
+"""
+
+
+def register(subparsers) -> None:
+    from calib.boards import BOARD_HELP, DEFAULT_BOARD
+
+    parser = subparsers.add_parser(
+        "calibrate", help="camera intrinsics and distortion from a board (live or from images)",
+        description="Zhang calibration from a live camera or image files, with coverage "
+        "feedback, outlier views dropped and named, and a verdict on the result.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--camera", metavar="SOURCE", help="live camera source: aravis[:ID], replay:DIR[@pace], ...")
+    source.add_argument(
+        "--images", nargs="+", metavar="GLOB",
+        help="image files, directories or quoted globs ('DIR/*.png'); corners are cached in DIR/corners.yaml",
+    )
+    parser.add_argument("--board", default=DEFAULT_BOARD, metavar="SPEC", help=BOARD_HELP + f" (default {DEFAULT_BOARD})")
+    parser.add_argument("--out", required=True, metavar="FILE", help="camera_info YAML to write")
+    parser.add_argument("--force", action="store_true", help="replace an existing output")
+    parser.add_argument("--model", choices=("plumb_bob", "rational_polynomial"), default="plumb_bob",
+                        help="distortion model (default plumb_bob: k1 k2 p1 p2 k3)")
+    parser.add_argument("--fix-principal-point", action="store_true", help="keep the principal point at the image centre")
+    parser.add_argument("--fix-aspect-ratio", action="store_true", help="solve one focal length (fx = fy)")
+    parser.add_argument("--camera-name", default="camera", help="camera_name in the output (default 'camera')")
+    parser.add_argument("--config", metavar="FILE", help="daemon config whose [camera] settings to use (live only)")
+    parser.add_argument("--min-views", type=int, default=15, help="live: views needed before coverage can finish (default 15)")
+    parser.add_argument("--max-views", type=int, default=40, help="live: stop after this many views (default 40)")
+    parser.set_defaults(func=run)
+
+
+def _outputs(out: str, force: bool, live: bool) -> tuple[Path, Path, Path]:
+    """(camera_info, views folder, report PNG); refuse to overwrite without --force.
+    The views folder is written by live captures only (from images it may be the input)."""
+    path = Path(out)
+    if path.is_dir():
+        raise InputFileError(f"--out {path}: is a directory; give a file name such as {path / 'camera.yaml'}")
+    if not path.parent.is_dir():
+        raise InputFileError(f"--out {path}: directory {path.parent} does not exist")
+    views = path.with_name(path.stem + ".views")
+    report = path.with_name(path.stem + ".report.png")
+    if not force:
+        for existing in (path, views, report) if live else (path, report):
+            if existing.exists():
+                raise InputFileError(f"{existing}: already exists; use --force to replace it (or another --out)")
+    return path, views, report
+
+
+def expand_images(patterns: list[str]) -> list[Path]:
+    """Files from globs, directories and names, sorted within each pattern, no repeats."""
+    paths: list[Path] = []
+    for pattern in patterns:
+        given = Path(pattern)
+        if given.is_dir():
+            matches = sorted(p for p in given.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        elif any(ch in pattern for ch in "*?["):
+            matches = sorted(Path(p) for p in glob.glob(pattern) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+        elif given.is_file():
+            matches = [given]
+        else:
+            raise InputFileError(f"--images {pattern}: no such file or directory")
+        if not matches:
+            raise InputFileError(f"--images {pattern!r}: no image files match")
+        paths += [p for p in matches if p not in paths]
+    return paths
+
+
+def run(args) -> int:
+    from calib.boards import parse_board
+    from calib.solve import SolveOptions
+
+    board = parse_board(args.board)
+    out, views_dir, report_png = _outputs(args.out, args.force, live=args.camera is not None)
+    options = SolveOptions(model=args.model, fix_principal_point=args.fix_principal_point, fix_aspect_ratio=args.fix_aspect_ratio)
+    if args.images:
+        return _run_images(args, board, options, out, report_png)
+    return _run_live(args, board, options, out, views_dir, report_png)
+
+
+def _run_images(args, board, options, out: Path, report_png: Path) -> int:
+    from calib.pipeline import calibrate_views, detect_images, views_from_detections
+
+    paths = expand_images(args.images)
+    print(f"detecting {board.description} in {len(paths)} images ...", flush=True)
+    detections = detect_images(paths, board)
+    views, skipped = views_from_detections(detections, board)
+    run = calibrate_views(views, detections[0].size, board, options, skipped=skipped, camera_name=args.camera_name)
+    _write_results(run, out, report_png)
+    return 0
+
+
+def _write_results(run, out: Path, report_png: Path, views_note: str = "") -> None:
+    import cv2
+
+    from calib.camera_info import write_camera_info
+    from calib.report import format_report, render_report
+    from cubeloc.atomic import atomic_write_bytes
+
+    for line in format_report(run.solution, run.verdict, list(run.skipped)):
+        print(line)
+    ok, png = cv2.imencode(".png", render_report(run.solution))
+    if ok:
+        atomic_write_bytes(report_png, png.tobytes())
+    write_camera_info(out, run.calibration)  # last: its presence means a finished calibration
+    print(f"wrote {out}{views_note} and {report_png}")
+
+
+def _camera_settings(config_path: str | None):
+    from daemon.config import load_config
+
+    return load_config(config_path).camera.settings() if config_path else None
+
+
+def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path) -> int:
+    from calib.pipeline import ImageDetection, calibrate_views, views_from_detections
+    from calib.solve import MIN_VIEWS
+    from drivers.base import CameraBusy
+    from drivers.registry import make_camera
+
+    if args.min_views < MIN_VIEWS or args.max_views < args.min_views:
+        raise InputFileError(f"--min-views {args.min_views} / --max-views {args.max_views}: need {MIN_VIEWS} <= min <= max")
+    camera = make_camera(args.camera, _camera_settings(args.config))
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())  # the loop finishes cleanly
+    try:
+        try:
+            camera.open()
+        except CameraBusy as exc:
+            raise CameraBusy(f"{exc}; calibrate, then start the daemon again ('systemctl start cubeloc')") from None
+        serial = camera.info.serial
+        camera.start()
+        accepted, ended = _capture_views(camera, board, args, stop)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        with contextlib.suppress(Exception):
+            camera.stop()
+        camera.close()
+    print(f"\ncapture ended: {ended}; {len(accepted)} views kept", flush=True)
+    if len(accepted) < MIN_VIEWS:
+        raise CubelocError(
+            f"only {len(accepted)} views were kept ({ended}); at least {MIN_VIEWS} are needed: nothing written"
+        )
+    height, width = accepted[0][1].shape
+    detections = [ImageDetection(Path(name), (width, height), det) for name, _, det in accepted]
+    views, skipped = views_from_detections(detections, board)
+    run = calibrate_views(
+        views, (width, height), board, options, skipped=skipped, camera_name=args.camera_name, camera_serial=serial
+    )
+    _write_views(views_dir, board, accepted)
+    _write_results(run, out, report_png, views_note=f", {views_dir}/ ({len(accepted)} images + corners.yaml)")
+    return 0
+
+
+def _capture_views(camera, board, args, stop: threading.Event) -> tuple[list[tuple], str]:
+    """Keep the frames that add coverage until done, out of frames, or asked to stop.
+
+    Returns ([(name, image, detection)], why capture ended). On a terminal the status
+    line is rewritten in place (5 times a second); otherwise one line per kept view.
+    """
+    from calib.coverage import CoverageTracker
+    from calib.detect import detect_board
+    from drivers.base import EndOfStream, FrameTimeout, StreamBroken
+
+    accepted: list[tuple] = []
+    tracker: CoverageTracker | None = None
+    timeouts = 0
+    interactive = sys.stdout.isatty()
+    last_print = 0.0
+    print("capturing: move the board through the whole image, near and far, tilted; Ctrl-C to finish early", flush=True)
+    try:
+        while not stop.is_set():
+            try:
+                frame = camera.next_frame(timeout_s=1.0)
+            except FrameTimeout:
+                timeouts += 1
+                if timeouts >= MAX_TIMEOUTS:
+                    return accepted, f"no frames from {args.camera} for {MAX_TIMEOUTS} s"
+                continue
+            except EndOfStream:
+                return accepted, "end of the recorded source"
+            except StreamBroken as exc:
+                return accepted, f"camera stream broke ({exc})"
+            timeouts = 0
+            image = frame.image
+            if tracker is None:
+                size = (image.shape[1], image.shape[0])
+                tracker = CoverageTracker(board, size, min_views=args.min_views, max_views=args.max_views)
+            detection = detect_board(image, board)
+            offer = tracker.offer(detection)
+            if offer.accepted:
+                accepted.append((f"view_{len(accepted):03d}.png", image.copy(), detection))
+            now = time.monotonic()
+            if offer.accepted or (interactive and now - last_print > 0.2):
+                line = tracker.status_line() + ("  + " if offer.accepted else "  - ") + offer.reason
+                print(("\r" + line.ljust(160)) if interactive else line, end="" if interactive else "\n", flush=True)
+                last_print = now
+            if tracker.done:
+                return accepted, "coverage good enough"
+    except KeyboardInterrupt:
+        pass
+    return accepted, "stopped on request"
+
+
+def _write_views(views_dir: Path, board, accepted) -> None:
+    """The kept images and their corners, as a folder that appears whole or not at all."""
+    import hashlib
+
+    import cv2
+
+    from calib.corners_cache import ImageRecord, save_cache
+
+    staging = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.", dir=views_dir.parent))
+    try:
+        records = []
+        for name, image, detection in accepted:
+            ok, png = cv2.imencode(".png", image)
+            if not ok:
+                raise OSError(f"cannot encode {name}")
+            data = png.tobytes()
+            (staging / name).write_bytes(data)
+            records.append(ImageRecord(name, hashlib.sha256(data).hexdigest(), image.shape[1], image.shape[0], detection))
+        save_cache(staging, board, records)
+        if views_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.old.", dir=views_dir.parent))
+            os.replace(views_dir, old / "views")
+            os.replace(staging, views_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(staging, views_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
