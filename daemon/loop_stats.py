@@ -1,0 +1,85 @@
+"""Counters and rolling figures of the processing loop, read by the status publisher.
+
+Written by the processing thread, read by the status thread: every access takes the lock.
+Rates are over a sliding window of monotonic times (never loop ticks); latency
+percentiles over the last few hundred frames.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+
+import numpy as np
+
+FPS_WINDOW_S = 3.0
+LATENCY_WINDOW = 500
+
+
+class LoopStats:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._frame_times: collections.deque[float] = collections.deque()
+        self._latencies_ms: collections.deque[float] = collections.deque(maxlen=LATENCY_WINDOW)
+        self.frames = 0
+        self.poses = 0
+        self.rejected_poses = 0
+        self.processor_errors = 0
+        self.last_status = "starting"
+        self.last_detail = ""
+        self.last_tags: tuple[int, ...] = ()
+        self.last_seq = -1
+        # Per-second summary counters (reset by ``take_summary``).
+        self._summary = collections.Counter()
+
+    def record_frame(self, seq: int, status: str, detail: str, tags: tuple[int, ...]) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.frames += 1
+            self.last_seq = seq
+            self.last_status, self.last_detail, self.last_tags = status, detail, tags
+            self._frame_times.append(now)
+            while self._frame_times and now - self._frame_times[0] > FPS_WINDOW_S:
+                self._frame_times.popleft()
+            self._summary["frames"] += 1
+            self._summary[f"status:{status}"] += 1
+
+    def record_pose(self, latency_ms: float) -> None:
+        with self._lock:
+            self.poses += 1
+            self._latencies_ms.append(latency_ms)
+            self._summary["poses"] += 1
+
+    def record_rejected(self) -> None:
+        with self._lock:
+            self.rejected_poses += 1
+
+    def record_error(self) -> None:
+        with self._lock:
+            self.processor_errors += 1
+
+    def fps(self) -> float:
+        now = time.monotonic()
+        with self._lock:
+            times = [t for t in self._frame_times if now - t <= FPS_WINDOW_S]
+        if len(times) < 2:
+            return 0.0
+        # Frames per second between the first and last frame in the window, so the figure
+        # does not ramp up slowly after a start or reconnect.
+        span = times[-1] - times[0]
+        return (len(times) - 1) / span if span > 0 else 0.0
+
+    def latency_percentiles(self) -> dict[str, float | None]:
+        with self._lock:
+            values = list(self._latencies_ms)
+        if not values:
+            return {"p50": None, "p99": None}
+        p50, p99 = np.percentile(values, [50, 99])
+        return {"p50": round(float(p50), 2), "p99": round(float(p99), 2)}
+
+    def take_summary(self) -> collections.Counter:
+        """The counters since the last call (for the once-a-second log line)."""
+        with self._lock:
+            summary, self._summary = self._summary, collections.Counter()
+        return summary

@@ -1,0 +1,127 @@
+"""The wire payloads: ``cubeloc.pose/1`` and ``cubeloc.status/1`` (JSON, UTF-8).
+
+The pose schema is a user-facing contract (docs: interfaces.md). A pose is checked before
+it is encoded: a NaN, an infinity or a non-unit quaternion never reaches the wire; such a
+frame raises ``UnpublishablePose`` and publishes nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from positioning.estimator import PoseEstimate
+
+POSE_SCHEMA = "cubeloc.pose/1"
+STATUS_SCHEMA = "cubeloc.status/1"
+
+# A camera further than this from the world origin is a solver failure, not a pose.
+MAX_POSITION_M = 1.0e4
+QUATERNION_NORM_TOLERANCE = 1e-6
+
+
+class UnpublishablePose(ValueError):
+    """A pose that must not be published (non-finite, non-unit quaternion, absurd)."""
+
+
+def _finite_list(values: np.ndarray, what: str) -> list[float]:
+    array = np.asarray(values, dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(array)):
+        raise UnpublishablePose(f"{what} is not finite: {array.tolist()}")
+    return [float(v) for v in array]
+
+
+def pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate) -> dict[str, Any]:
+    """The ``cubeloc.pose/1`` document for one frame, validated."""
+    if stamp_ns <= 0:
+        raise UnpublishablePose(f"stamp_ns {stamp_ns} is not a capture time")
+    transform = estimate.T_world_camera
+    position = _finite_list(transform.translation, "position")
+    if math.hypot(*position) > MAX_POSITION_M:
+        raise UnpublishablePose(f"position {position} is more than {MAX_POSITION_M:g} m from the target")
+    rotation = np.asarray(transform.rotation)
+    if not np.all(np.isfinite(rotation)):
+        raise UnpublishablePose("rotation is not finite")
+    # Transform.quaternion() normalises; a rotation matrix that is not a rotation would be
+    # hidden by that, so check orthonormality first.
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
+        raise UnpublishablePose("rotation matrix is not a proper rotation")
+    orientation = _finite_list(transform.quaternion(), "orientation")
+    norm = math.sqrt(sum(q * q for q in orientation))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE or orientation[3] < 0:
+        raise UnpublishablePose(f"orientation {orientation} is not a unit quaternion with w >= 0")
+    rms = float(estimate.reproj_rms_px)
+    if not math.isfinite(rms) or rms < 0:
+        raise UnpublishablePose(f"reproj_rms_px {rms} is not a finite non-negative number")
+    covariance = None
+    if estimate.covariance is not None:
+        cov = np.asarray(estimate.covariance, dtype=np.float64)
+        if cov.shape != (6, 6):
+            raise UnpublishablePose(f"covariance has shape {cov.shape}, expected (6, 6)")
+        covariance = _finite_list(cov, "covariance")
+    return {
+        "schema": POSE_SCHEMA,
+        "seq": int(seq),
+        "stamp_ns": int(stamp_ns),
+        "frame_id": "world",
+        "child_frame_id": "camera",
+        "position": position,
+        "orientation": orientation,
+        "state": estimate.state.value,
+        "planes": int(estimate.planes),
+        "reproj_rms_px": round(rms, 4),
+        "covariance": covariance,
+    }
+
+
+def encode(document: dict[str, Any]) -> bytes:
+    # allow_nan=False: a NaN that slipped past the checks fails here rather than on the wire.
+    return json.dumps(document, allow_nan=False, separators=(",", ":")).encode("utf-8")
+
+
+def pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate) -> bytes:
+    return encode(pose_payload(seq, stamp_ns, estimate))
+
+
+@dataclass(frozen=True)
+class CameraStatus:
+    source: str
+    state: str  # connecting | streaming | reconnecting | ended | stopped
+    detail: str = ""
+    model: str = ""
+    serial: str = ""
+    reconnects: int = 0
+    dropped: int = 0  # frames the camera backend dropped (bad buffers, gaps, timestamps)
+
+
+@dataclass(frozen=True)
+class StatusReport:
+    """What ``cubeloc/<name>/status`` carries once a second."""
+
+    name: str
+    state: str  # one word: the camera's state, else the positioning status of the last frame
+    detail: str
+    stamp_ns: int  # host time of this report
+    fps: float  # frames processed per second, over the last few seconds
+    frames: int  # frames processed since start
+    poses: int  # poses published since start
+    dropped_frames: int  # frames overwritten in the queue (processing slower than the camera)
+    rejected_poses: int  # poses that failed the wire checks (NaN, non-unit quaternion)
+    latency_ms: dict[str, float | None]  # p50, p99: frame leaves the camera driver -> published
+    camera: CameraStatus
+    uptime_s: float
+    version: str
+    tags_seen: tuple[int, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def status_message(report: StatusReport) -> bytes:
+    document = {"schema": STATUS_SCHEMA, **asdict(report)}
+    document["tags_seen"] = list(report.tags_seen)
+    document["fps"] = round(report.fps, 2)
+    document["uptime_s"] = round(report.uptime_s, 1)
+    return encode(document)

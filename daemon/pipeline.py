@@ -1,0 +1,158 @@
+"""The processing stage: newest frame -> ``FrameProcessor`` -> ``pose`` publication.
+
+The loop knows positioning only through ``positioning.estimator.FrameProcessor``: the
+single-frame target pose today, the tracker (which wraps it) later, without a change here.
+A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/1``;
+any other frame publishes nothing, and its status word shows on ``status``.
+
+This loop is also the systemd watchdog's only source (daemon/sdnotify.py): it pets the
+watchdog when it processed a frame, or when it found no frame but the capture thread is
+alive (waiting for a camera is the daemon working as intended); a hung loop or a hung
+capture thread stops the pets and systemd restarts the service.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import structlog
+
+from daemon.capture import CaptureThread
+from daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from daemon.loop_stats import LoopStats
+from daemon.messages import UnpublishablePose, pose_message
+from daemon.sdnotify import SystemdNotifier
+from positioning.estimator import FrameProcessor, FrameResult
+
+log = structlog.get_logger()
+
+GET_TIMEOUT_S = 0.2
+# Beyond the capture thread's own frame timeout, how long it may go without a sign of life.
+CAPTURE_STALL_MARGIN_S = 5.0
+
+
+class ProcessingLoop:
+    def __init__(
+        self,
+        processor: FrameProcessor,
+        slot: LatestFrameSlot,
+        capture: CaptureThread,
+        stats: LoopStats,
+        publish_pose: Callable[[bytes], None],
+        notifier: SystemdNotifier,
+        stop: threading.Event,
+        *,
+        expected_size: tuple[int, int],  # (width, height) of the calibration
+        capture_stall_s: float,
+        summary_period_s: float = 1.0,
+    ) -> None:
+        self._processor = processor
+        self._slot = slot
+        self._capture = capture
+        self._stats = stats
+        self._publish_pose = publish_pose
+        self._notifier = notifier
+        self._stop = stop
+        self._expected_size = expected_size
+        self._capture_stall_s = capture_stall_s
+        self._summary_period_s = summary_period_s
+        self._reset = threading.Condition()
+        self._reset_requested = 0
+        self._reset_done = 0
+        self._size_warned = False
+
+    # -- reset, asked for from a Zenoh thread ---------------------------------------------
+    def request_reset(self, timeout_s: float = 2.0) -> bool:
+        """Ask the loop to reset the processor; True once it has (within ``timeout_s``)."""
+        with self._reset:
+            self._reset_requested += 1
+            ticket = self._reset_requested
+            return self._reset.wait_for(lambda: self._reset_done >= ticket or self._stop.is_set(), timeout_s) and self._reset_done >= ticket
+
+    def _reset_if_requested(self) -> None:
+        with self._reset:
+            pending = self._reset_requested
+            if pending <= self._reset_done:
+                return
+        self._processor.reset()
+        log.info("processor reset", requests=pending - self._reset_done)
+        with self._reset:
+            self._reset_done = pending
+            self._reset.notify_all()
+
+    # -- the loop -------------------------------------------------------------------------
+    def run(self) -> None:
+        next_summary = time.monotonic() + self._summary_period_s
+        while not self._stop.is_set():
+            self._reset_if_requested()
+            item = self._slot.get(GET_TIMEOUT_S)
+            if item is not None:
+                self._process(item)
+                self._notifier.ready(status="streaming")
+                self._notifier.watchdog()
+            elif self._capture_alive():
+                self._notifier.watchdog()
+            if self._capture.ended.is_set() and item is None:
+                break  # a finite source ran out and the last frame is done
+            now = time.monotonic()
+            if now >= next_summary:
+                self._log_summary()
+                next_summary = now + self._summary_period_s
+        self._log_summary()
+        with self._reset:
+            self._reset.notify_all()  # release reset requests waiting on a stopped loop
+
+    def _capture_alive(self) -> bool:
+        return self._capture.is_alive() and time.monotonic() - self._capture.heartbeat < self._capture_stall_s
+
+    def _process(self, item: CapturedFrame) -> None:
+        frame = item.frame
+        bound = log.bind(seq=item.seq)
+        height, width = frame.image.shape[:2]
+        if (width, height) != self._expected_size:
+            result = FrameResult(None, "calibration_mismatch",
+                                 f"frame is {width}x{height}, the calibration {self._expected_size[0]}x{self._expected_size[1]}")
+            if not self._size_warned:
+                bound.error("frame size differs from the calibration; no poses until fixed", detail=result.detail)
+                self._size_warned = True
+        else:
+            try:
+                result = self._processor.process(frame.image, frame.stamp_ns, item.seq)
+            except Exception:
+                # A processor must not raise; if it does it is a bug: log it with its
+                # traceback, count it on status, and go on with the next frame.
+                bound.exception("frame processor raised")
+                self._stats.record_error()
+                result = FrameResult(None, "error", "the frame processor raised; see the log")
+        if result.estimate is None:
+            self._stats.record_frame(item.seq, result.status, result.detail, result.tags_seen)
+            return
+        try:
+            payload = pose_message(item.seq, frame.stamp_ns, result.estimate)
+        except UnpublishablePose as exc:
+            bound.warning("pose not published", reason=str(exc))
+            self._stats.record_rejected()
+            self._stats.record_frame(item.seq, "rejected", str(exc), result.tags_seen)
+            return
+        self._publish_pose(payload)
+        self._stats.record_pose((time.monotonic_ns() - item.received_monotonic_ns) / 1e6)
+        # On status, a frame with a pose shows the pose's state ("target", "tracking"...).
+        self._stats.record_frame(item.seq, result.estimate.state.value, result.detail, result.tags_seen)
+
+    def _log_summary(self) -> None:
+        summary = self._stats.take_summary()
+        if not summary:
+            return
+        statuses = {k.split(":", 1)[1]: v for k, v in summary.items() if k.startswith("status:")}
+        log.info(
+            "processing",
+            frames=summary["frames"],
+            poses=summary["poses"],
+            statuses=statuses,
+            fps=round(self._stats.fps(), 1),
+            dropped_frames=self._slot.dropped,
+            last_seq=self._stats.last_seq,
+            camera=self._capture.status().state,
+        )

@@ -1,0 +1,64 @@
+"""Everything the daemon checks before it starts anything.
+
+A bad camera source, a missing or unreadable calibration, a calibration for another
+resolution, a bad target file or a bad Zenoh endpoint or file fails here, as one line and
+exit code 2, before a camera or a Zenoh session is opened.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from calib.camera_info import CameraCalibration, read_camera_info
+from cubeloc.errors import ConfigError
+from daemon.config import Config
+from daemon.zenoh_session import build_zenoh_config
+from drivers.registry import make_camera, parse_source
+from positioning.estimator import FrameProcessor
+from positioning.target import Target, load_target
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A configuration whose files have been read and checked."""
+
+    config: Config
+    calibration: CameraCalibration
+    calibration_yaml: str  # the file's text, served on the ``calibration`` queryable
+    target: Target
+
+
+def prepare(config: Config) -> Prepared:
+    parse_source(config.camera.source)
+    path = config.positioning.calibration
+    calibration = read_camera_info(path)
+    camera_size = (config.camera.width, config.camera.height)
+    if calibration.size != camera_size:
+        raise ConfigError(
+            f"calibration {path} is for {calibration.width}x{calibration.height} images but the "
+            f"camera is set to {camera_size[0]}x{camera_size[1]} (camera.width/height): calibrate "
+            "at the camera's resolution or set camera.width and camera.height to match"
+        )
+    target = load_target(config.positioning.target)
+    build_zenoh_config(config.zenoh)
+    # Build (not open) the camera last (the synthetic one takes a second): a bad source
+    # argument (an unknown synthetic option, a replay without a directory) fails here; a
+    # camera that is merely absent does not.
+    make_camera(config.camera.source, config.camera.settings())
+    return Prepared(config, calibration, path.read_text(encoding="utf-8"), target)
+
+
+def make_processor(prepared: Prepared) -> FrameProcessor:
+    """The frame processor the loop calls (positioning/ chooses how poses are made)."""
+    from positioning.single_frame import PoseOptions, TargetPoseProcessor
+
+    options = prepared.config.positioning
+    return TargetPoseProcessor(
+        prepared.target,
+        prepared.calibration,
+        PoseOptions(
+            allow_two_faces=options.allow_two_faces,
+            allow_one_face=options.allow_one_face,
+            max_reproj_rms_px=options.max_reproj_rms_px,
+        ),
+    )

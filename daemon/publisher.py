@@ -1,0 +1,95 @@
+"""The daemon's Zenoh face: the keys of interfaces.md under ``cubeloc/<name>/``.
+
+========================  ============  ==============================================
+``pose``                  publication   ``cubeloc.pose/1``, every frame with a pose
+``status``                publication   ``cubeloc.status/1``, once a second
+``alive``                 liveliness    present while the daemon runs
+``calibration``           queryable     the camera_info YAML in use
+``reset``                 queryable     re-initialise on the target (deny it with Zenoh ACL)
+========================  ============  ==============================================
+
+``pose`` uses congestion control DROP and express with a high priority: a slow or absent
+subscriber costs a message, never a stalled loop.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import structlog
+
+if TYPE_CHECKING:  # pragma: no cover
+    import zenoh
+
+log = structlog.get_logger()
+
+
+def key_prefix(name: str) -> str:
+    return f"cubeloc/{name}"
+
+
+class ZenohPublisher:
+    """Declares everything at construction; ``close`` undeclares it (before the session closes)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        name: str,
+        calibration_yaml: str,
+        request_reset: Callable[[], bool],
+    ) -> None:
+        import zenoh
+
+        self._zenoh = zenoh
+        prefix = key_prefix(name)
+        self.prefix = prefix
+        self._calibration_yaml = calibration_yaml
+        self._request_reset = request_reset
+        self._pose = session.declare_publisher(
+            f"{prefix}/pose",
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.INTERACTIVE_HIGH,
+            express=True,
+        )
+        self._status = session.declare_publisher(
+            f"{prefix}/status",
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA,
+        )
+        self._alive = session.liveliness().declare_token(f"{prefix}/alive")
+        self._calibration = session.declare_queryable(f"{prefix}/calibration", self._on_calibration)
+        self._reset = session.declare_queryable(f"{prefix}/reset", self._on_reset)
+        self._closed = False
+        log.info("zenoh keys declared", prefix=prefix)
+
+    def publish_pose(self, payload: bytes) -> None:
+        self._pose.put(payload)
+
+    def publish_status(self, payload: bytes) -> None:
+        self._status.put(payload)
+
+    def _on_calibration(self, query: zenoh.Query) -> None:
+        query.reply(query.key_expr, self._calibration_yaml.encode("utf-8"),
+                    encoding=self._zenoh.Encoding.TEXT_YAML)
+
+    def _on_reset(self, query: zenoh.Query) -> None:
+        # Runs on a Zenoh thread: the processing loop performs the reset (it owns the
+        # processor); this waits briefly for it so the caller learns whether it happened.
+        done = self._request_reset()
+        log.info("reset requested over zenoh", done=done)
+        query.reply(query.key_expr, json.dumps({"reset": done}).encode("utf-8"),
+                    encoding=self._zenoh.Encoding.APPLICATION_JSON)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for entity in (self._reset, self._calibration, self._alive, self._status, self._pose):
+            try:
+                entity.undeclare()
+            except self._zenoh.ZError as exc:  # the session may already be closing
+                log.debug("undeclare failed", error=str(exc))

@@ -1,0 +1,153 @@
+"""The daemon, wired: capture thread -> newest-frame slot -> processing loop -> Zenoh.
+
+Three threads: capture (daemon/capture.py), processing (the caller's thread,
+daemon/pipeline.py) and status (here, once a second). ``stop`` is the only way to end
+it; signal handlers (daemon/commands/run.py) only set it. Shutdown is in order: the loop
+finishes its frame, the capture thread closes the camera, a last ``status`` goes out, the
+Zenoh entities are undeclared and the session closed, all within about a second.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import structlog
+
+from cubeloc import __version__
+from daemon.capture import CaptureThread
+from daemon.frame_queue import LatestFrameSlot
+from daemon.loop_stats import LoopStats
+from daemon.messages import StatusReport, status_message
+from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
+from daemon.preflight import Prepared, make_processor
+from daemon.publisher import ZenohPublisher
+from daemon.sdnotify import SystemdNotifier
+from daemon.zenoh_session import open_session
+from drivers.base import Camera, CameraSettings
+from drivers.registry import make_camera
+from positioning.estimator import FrameProcessor
+
+log = structlog.get_logger()
+
+JOIN_TIMEOUT_S = 1.0
+
+
+class Daemon:
+    def __init__(
+        self,
+        prepared: Prepared,
+        stop: threading.Event,
+        *,
+        notifier: SystemdNotifier | None = None,
+        processor: FrameProcessor | None = None,
+        camera_factory: Callable[[str, CameraSettings], Camera] = make_camera,
+    ) -> None:
+        self.prepared = prepared
+        self.config = prepared.config
+        self.stop = stop
+        self.notifier = notifier or SystemdNotifier()
+        self.processor = processor if processor is not None else make_processor(prepared)
+        self.stats = LoopStats()
+        self.slot = LatestFrameSlot()
+        camera = self.config.camera
+        service = self.config.daemon
+        self.capture = CaptureThread(
+            camera.source, camera.settings(), self.slot, stop,
+            frame_timeout_s=camera.frame_timeout_s,
+            timeout_streak=service.timeout_streak,
+            backoff_initial_s=service.reconnect_initial_s,
+            backoff_max_s=service.reconnect_max_s,
+            camera_factory=camera_factory,
+        )
+        self._started = time.monotonic()
+        self._publisher: ZenohPublisher | None = None
+        self.serving = threading.Event()  # set once the Zenoh keys are declared
+
+    def run(self) -> int:
+        """Run until ``stop`` is set or a finite source ends. Returns the exit code."""
+        config = self.config
+        session = open_session(config.zenoh, purpose="daemon")
+        status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
+        try:
+            loop = ProcessingLoop(
+                self.processor, self.slot, self.capture, self.stats,
+                publish_pose=lambda payload: self._publisher.publish_pose(payload),
+                notifier=self.notifier, stop=self.stop,
+                expected_size=self.prepared.calibration.size,
+                capture_stall_s=config.camera.frame_timeout_s + CAPTURE_STALL_MARGIN_S,
+            )
+            self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset)
+            log.info("daemon started", name=config.name, source=config.camera.source, version=__version__,
+                     calibration=str(config.positioning.calibration), target=str(config.positioning.target))
+            self.capture.start()
+            status_thread.start()
+            self.serving.set()
+            loop.run()
+        finally:
+            self._shutdown(session, status_thread)
+        if self.capture.failure is not None:
+            raise self.capture.failure
+        return 0
+
+    def _shutdown(self, session, status_thread: threading.Thread) -> None:
+        started = time.monotonic()
+        self.stop.set()
+        self.notifier.stopping()
+        self.slot.close()
+        if self.capture.ident is not None:  # started
+            self.capture.join(JOIN_TIMEOUT_S)
+        if status_thread.ident is not None:
+            status_thread.join(JOIN_TIMEOUT_S)
+        if self._publisher is not None:
+            self._publish_status()  # the last word: the camera's final state
+            self._publisher.close()
+        session.close()
+        self.notifier.close()
+        log.info("daemon stopped", seconds=round(time.monotonic() - started, 3),
+                 camera_closed=not self.capture.is_alive())
+
+    # -- status ---------------------------------------------------------------------------
+    def report(self) -> StatusReport:
+        camera = self.capture.status()
+        stats = self.stats
+        if camera.state != "streaming":
+            state, detail = camera.state, camera.detail
+        elif stats.frames == 0:
+            state, detail = "starting", "waiting for the first frame"
+        else:
+            state, detail = stats.last_status, stats.last_detail
+        return StatusReport(
+            name=self.config.name,
+            state=state,
+            detail=detail,
+            stamp_ns=time.time_ns(),
+            fps=stats.fps(),
+            frames=stats.frames,
+            poses=stats.poses,
+            dropped_frames=self.slot.dropped,
+            rejected_poses=stats.rejected_poses,
+            latency_ms=stats.latency_percentiles(),
+            camera=camera,
+            uptime_s=time.monotonic() - self._started,
+            version=__version__,
+            tags_seen=stats.last_tags,
+            extra={"processor_errors": stats.processor_errors},
+        )
+
+    def _publish_status(self) -> StatusReport:
+        report = self.report()
+        if self._publisher is not None:
+            self._publisher.publish_status(status_message(report))
+        self.notifier.status(f"{report.state}, {report.fps:.1f} fps, camera {report.camera.state}")
+        return report
+
+    def _status_loop(self) -> None:
+        period = self.config.daemon.status_period_s
+        deadline = time.monotonic()
+        while not self.stop.is_set():
+            self._publish_status()
+            deadline += period
+            # Monotonic deadlines: a slow publish does not make the rate drift.
+            self.stop.wait(max(0.0, deadline - time.monotonic()))

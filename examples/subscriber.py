@@ -1,0 +1,80 @@
+#!/usr/bin/env python3
+"""Read a cubeloc daemon's poses over Zenoh: a robot integrator's first five minutes.
+
+Needs only Zenoh (``pip install eclipse-zenoh``), not cubeloc::
+
+    python3 subscriber.py                                   # find daemons by multicast
+    python3 subscriber.py --connect tcp/192.168.1.50:7447   # the robot's address
+    python3 subscriber.py --connect tcp/192.168.1.50:7447 > run.tum   # evo_traj tum run.tum
+
+Every pose is printed as one TUM line, ``timestamp tx ty tz qx qy qz qw``: the capture
+time of the frame in seconds, the camera centre in the world (target) frame in metres,
+and the camera's orientation (rotation world <- camera, x right, y down, z forward) as a
+unit quaternion. Status changes of the daemon go to stderr.
+
+The payload (JSON, schema ``cubeloc.pose/1``)::
+
+    {"schema": "cubeloc.pose/1", "seq": 42, "stamp_ns": 1790000000000000000,
+     "frame_id": "world", "child_frame_id": "camera",
+     "position": [x, y, z], "orientation": [qx, qy, qz, qw],
+     "state": "target", "planes": 3, "reproj_rms_px": 0.21, "covariance": null}
+"""
+
+import argparse
+import json
+import queue
+import sys
+import time
+
+import zenoh
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--connect", action="append", default=[], help="endpoint of the daemon, e.g. tcp/192.168.1.50:7447")
+    parser.add_argument("--name", default="*", help="the daemon's name (default: every daemon)")
+    parser.add_argument("--count", type=int, default=0, help="stop after this many poses (default: run until Ctrl-C)")
+    parser.add_argument("--timeout", type=float, default=0.0, help="stop after this many seconds (default: never)")
+    args = parser.parse_args()
+
+    config = zenoh.Config()
+    if args.connect:  # a known address: no need for multicast discovery
+        config.insert_json5("connect/endpoints", json.dumps(args.connect))
+        config.insert_json5("scouting/multicast/enabled", "false")
+
+    # Zenoh calls these from its own threads; hand the samples to the main thread.
+    inbox = queue.Queue()
+    with zenoh.open(config) as session:
+        session.declare_subscriber(f"cubeloc/{args.name}/pose", lambda sample: inbox.put(("pose", sample)))
+        session.declare_subscriber(f"cubeloc/{args.name}/status", lambda sample: inbox.put(("status", sample)))
+        poses, last_state = 0, {}
+        deadline = time.monotonic() + args.timeout if args.timeout else None
+        try:
+            while not args.count or poses < args.count:
+                if deadline is not None and time.monotonic() > deadline:
+                    break
+                try:
+                    kind, sample = inbox.get(timeout=0.2)
+                except queue.Empty:
+                    continue
+                message = json.loads(sample.payload.to_bytes())
+                if kind == "status":
+                    # Say when a daemon's state changes (target, no_target, reconnecting...).
+                    key = str(sample.key_expr)
+                    if last_state.get(key) != message["state"]:
+                        last_state[key] = message["state"]
+                        print(f"{key}: {message['state']} {message.get('detail', '')}", file=sys.stderr, flush=True)
+                    continue
+                stamp = message["stamp_ns"]
+                x, y, z = message["position"]
+                qx, qy, qz, qw = message["orientation"]
+                print(f"{stamp // 10**9}.{stamp % 10**9:09d} {x:.6f} {y:.6f} {z:.6f} "
+                      f"{qx:.6f} {qy:.6f} {qz:.6f} {qw:.6f}", flush=True)
+                poses += 1
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,262 @@
+"""The daemon in-process with real Zenoh sessions on loopback and the real target-pose
+processor, fed by a scripted camera: rendered frames of the cube (the synthetic camera's
+optics) that break and come back on cue, which no real camera does on demand."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calib.camera_info import paper_camera, write_camera_info
+from daemon.config import Config
+from daemon.preflight import prepare
+from daemon.sdnotify import SystemdNotifier
+from daemon.service import Daemon
+from drivers.base import (
+    CameraBase,
+    CameraNotFound,
+    CaptureStats,
+    DeviceInfo,
+    Frame,
+    FrameTimeout,
+    StreamBroken,
+)
+from fakes import render_view
+from positioning.geometry import look_at
+from positioning.target import default_cube_yaml
+
+CAMERA_POSITION = np.array([1.2, -1.0, 0.9])
+
+
+@pytest.fixture(scope="module")
+def cube_image():
+    return render_view(look_at(CAMERA_POSITION, np.zeros(3)), room=False)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ScriptedCamera(CameraBase):
+    """Delivers ``frames`` copies of an image every ``period_s``, then breaks the stream."""
+
+    def __init__(self, image, frames: int, period_s: float, log: list) -> None:
+        self._image, self._left, self._period_s, self._log = image, frames, period_s, log
+        self._next = 0.0
+        self._id = 0
+        self.stats = CaptureStats()
+        self.info = DeviceInfo("scripted", "test", "scripted", "0001", "fake")
+        self.settings = None
+
+    def open(self):
+        self._log.append("open")
+
+    def start(self):
+        self._next = time.monotonic()
+
+    def next_frame(self, timeout_s):
+        if self._left <= 0:
+            raise StreamBroken("cable pulled (scripted)")
+        wait = self._next - time.monotonic()
+        if wait > timeout_s:
+            time.sleep(timeout_s)
+            raise FrameTimeout("scripted")
+        time.sleep(max(wait, 0))
+        self._next += self._period_s
+        self._left -= 1
+        self._id += 1
+        stamp = time.time_ns()
+        self._log.append(("frame", stamp))
+        return Frame(self._image, self._id, stamp, stamp, 1000.0)
+
+    def stop(self):
+        pass
+
+    def close(self):
+        self._log.append("close")
+
+
+class Script:
+    """Camera factory: each open takes the next step (an int: frames before the stream
+    breaks; "missing": CameraNotFound at open)."""
+
+    def __init__(self, image, steps, period_s=0.05):
+        self.image, self.steps, self.period_s, self.log = image, list(steps), period_s, []
+
+    def __call__(self, source, settings):
+        step = self.steps.pop(0) if len(self.steps) > 1 else self.steps[0]
+        if step == "missing":
+            self.log.append("missing")
+            raise CameraNotFound("no camera (scripted)")
+        return ScriptedCamera(self.image, step, self.period_s, self.log)
+
+
+def make_prepared(tmp_path, port: int, **daemon):
+    write_camera_info(tmp_path / "camera.yaml", paper_camera())
+    (tmp_path / "target.yaml").write_text(default_cube_yaml())
+    config = Config.model_validate({
+        "name": "looptest",
+        "camera": {"source": "synthetic:static?seconds=1"},  # (preflight builds it; the Script stands in)
+        "positioning": {"calibration": tmp_path / "camera.yaml", "target": tmp_path / "target.yaml"},
+        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"]},
+        "daemon": {"reconnect_initial_s": 0.1, "reconnect_max_s": 0.4, "status_period_s": 0.25, **daemon},
+    })
+    return prepare(config)
+
+
+class Listener:
+    """A second Zenoh session, as a subscriber on the robot would have."""
+
+    def __init__(self, port: int) -> None:
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        self.session = zenoh.open(conf)
+        self.poses, self.status = [], []
+        self.session.declare_subscriber("cubeloc/*/pose", lambda s: self.poses.append(json.loads(s.payload.to_bytes())))
+        self.session.declare_subscriber("cubeloc/*/status", lambda s: self.status.append(json.loads(s.payload.to_bytes())))
+
+    def wait_for(self, predicate, timeout_s=20.0):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            time.sleep(0.05)
+        return False
+
+    def query(self, key):
+        return [r.ok.payload.to_bytes() for r in self.session.get(key, timeout=5.0) if r.ok is not None]
+
+    def alive(self):
+        return [str(r.ok.key_expr) for r in self.session.liveliness().get("cubeloc/*/alive", timeout=2.0) if r.ok is not None]
+
+
+@pytest.fixture
+def listeners():
+    """Listener sessions, always closed (an open Zenoh session keeps the interpreter alive)."""
+    made = []
+    yield lambda port: made.append(Listener(port)) or made[-1]
+    for listener in made:
+        listener.session.close()
+
+
+def start_daemon(prepared, script, notifier=None):
+    stop = threading.Event()
+    daemon = Daemon(prepared, stop, camera_factory=script, notifier=notifier or SystemdNotifier({}))
+    outcome = {}
+    thread = threading.Thread(target=lambda: outcome.setdefault("code", daemon.run()), daemon=True)
+    thread.start()
+    return daemon, stop, thread, outcome
+
+
+def test_daemon_publishes_poses_status_and_answers_queries(tmp_path, cube_image, listeners):
+    port = free_port()
+    prepared = make_prepared(tmp_path, port)
+    script = Script(cube_image, [10_000])
+    daemon, stop, thread, outcome = start_daemon(prepared, script)
+    listener = listeners(port)
+    try:
+        assert listener.wait_for(lambda: len(listener.poses) >= 5), listener.status[-1:]
+        pose = listener.poses[-1]
+        assert pose["schema"] == "cubeloc.pose/1" and pose["state"] == "target" and pose["planes"] == 3
+        assert np.linalg.norm(np.array(pose["position"]) - CAMERA_POSITION) < 0.005
+        stamps = {entry[1] for entry in script.log if isinstance(entry, tuple)}
+        assert all(p["stamp_ns"] in stamps for p in listener.poses)  # the capture time, not publish time
+        assert listener.wait_for(lambda: any(s["state"] == "target" and s["fps"] > 0 for s in listener.status))
+        status = listener.status[-1]
+        assert status["schema"] == "cubeloc.status/1" and status["name"] == "looptest"
+        assert status["camera"]["state"] == "streaming" and status["latency_ms"]["p50"] is not None
+        assert "cubeloc/looptest/alive" in listener.alive()
+        calibration = yaml.safe_load(listener.query("cubeloc/looptest/calibration")[0])
+        assert calibration["image_width"] == 1280 and calibration["camera_matrix"]["rows"] == 3
+        assert json.loads(listener.query("cubeloc/looptest/reset")[0]) == {"reset": True}
+        seq_before = listener.poses[-1]["seq"]
+        assert listener.wait_for(lambda: listener.poses[-1]["seq"] > seq_before)  # still publishing
+    finally:
+        stop.set()
+        thread.join(5.0)
+    assert not thread.is_alive()
+    assert outcome["code"] == 0
+    assert script.log[-1] == "close"  # the camera was closed
+    assert listener.wait_for(lambda: listener.alive() == [], 5.0)  # the token went with it
+
+
+def test_daemon_survives_camera_loss_and_reconnects(tmp_path, cube_image, listeners):
+    port = free_port()
+    prepared = make_prepared(tmp_path, port)
+    # No camera at boot, then 8 frames, then the cable is pulled, gone for two tries, back.
+    script = Script(cube_image, ["missing", 8, "missing", "missing", 10_000])
+    daemon, stop, thread, _ = start_daemon(prepared, script)
+    listener = listeners(port)
+    try:
+        assert listener.wait_for(lambda: any(s["camera"]["reconnects"] >= 1 and s["state"] == "target" for s in listener.status), 30)
+        states = [s["state"] for s in listener.status]
+        assert "reconnecting" in states
+        assert states.index("reconnecting") < len(states) - 1 - states[::-1].index("target")
+        assert script.log.count("missing") >= 3 and script.log.count("open") >= 2
+        before = len(listener.poses)
+        assert listener.wait_for(lambda: len(listener.poses) > before + 3)
+    finally:
+        stop.set()
+        thread.join(5.0)
+    assert not thread.is_alive()
+
+
+def test_ready_after_first_frame_and_watchdog_from_progress(tmp_path, cube_image, listeners):
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(5.0)
+    port = free_port()
+    prepared = make_prepared(tmp_path, port)
+    script = Script(cube_image, ["missing", "missing", 10_000], period_s=0.1)
+    notifier = SystemdNotifier({"NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "400000", "WATCHDOG_PID": str(os.getpid())})
+    _, stop, thread, _ = start_daemon(prepared, script, notifier)
+    messages = []
+    try:
+        while not any(m.startswith("READY=1") for m in messages):
+            messages.append(server.recv(4096).decode())
+        frames_at_ready = sum(isinstance(e, tuple) for e in script.log)
+        assert frames_at_ready >= 1  # READY only once a frame went through
+        assert script.log.count("missing") == 2
+        for _ in range(3):
+            messages.append(server.recv(4096).decode())
+        assert "WATCHDOG=1" in messages
+    finally:
+        stop.set()
+        thread.join(5.0)
+        server.close()
+
+
+def test_reset_can_be_denied_by_zenoh_access_control(tmp_path, cube_image, listeners):
+    # The shipped example, with the loopback interface standing for the robot's networks.
+    example = (Path(__file__).resolve().parents[1] / "examples" / "zenoh-deny-reset.json5").read_text()
+    acl = tmp_path / "zenoh.json5"
+    acl.write_text(example.replace('["eth0", "wlan0"]', '["lo"]'))
+    port = free_port()
+    prepared = make_prepared(tmp_path, port)
+    config = prepared.config.model_copy(update={"zenoh": prepared.config.zenoh.model_copy(update={"config_file": acl})})
+    prepared = dataclasses.replace(prepared, config=config)
+    _, stop, thread, _ = start_daemon(prepared, Script(cube_image, [10_000]))
+    listener = listeners(port)
+    try:
+        assert listener.wait_for(lambda: len(listener.poses) >= 1)
+        assert listener.query("cubeloc/looptest/reset") == []  # denied: no answer
+        assert listener.query("cubeloc/looptest/calibration")  # the rest stays open
+    finally:
+        stop.set()
+        thread.join(5.0)

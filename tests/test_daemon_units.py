@@ -1,0 +1,251 @@
+"""The daemon's parts on their own: newest-frame slot, wire payloads, sd_notify, stats,
+and bad configurations failing with one line before anything starts."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from calib.camera_info import paper_camera, write_camera_info
+from daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from daemon.loop_stats import LoopStats
+from daemon.messages import UnpublishablePose, pose_message, pose_payload
+from daemon.sdnotify import SystemdNotifier
+from drivers.base import Frame
+from positioning.estimator import PoseEstimate, PoseState
+from positioning.geometry import Transform, look_at
+from positioning.target import default_cube_yaml
+
+
+def _frame(seq: int) -> CapturedFrame:
+    image = np.zeros((4, 4), np.uint8)
+    return CapturedFrame(Frame(image, seq, seq, 1_000 + seq, 100.0), seq, time.monotonic_ns())
+
+
+def _estimate(transform: Transform, covariance=None) -> PoseEstimate:
+    return PoseEstimate(transform, PoseState.TARGET, 3, (0, 1, 4), 0.21, covariance)
+
+
+# -- newest-frame slot ------------------------------------------------------------------
+def test_slot_keeps_the_newest_frame_and_counts_the_dropped():
+    slot = LatestFrameSlot()
+    for seq in range(5):
+        slot.put(_frame(seq))
+    assert slot.get(0.01).seq == 4
+    assert slot.dropped == 4
+    assert slot.get(0.01) is None  # taken: no backlog to drain
+
+
+def test_slot_get_wakes_on_put_and_on_close():
+    slot = LatestFrameSlot()
+    threading.Timer(0.05, lambda: slot.put(_frame(7))).start()
+    assert slot.get(5.0).seq == 7
+    threading.Timer(0.05, slot.close).start()
+    started = time.monotonic()
+    assert slot.get(5.0) is None
+    assert time.monotonic() - started < 4.0
+
+
+# -- cubeloc.pose/1 ---------------------------------------------------------------------
+def test_pose_payload_follows_the_schema():
+    T = look_at(np.array([2.0, -1.0, 0.8]), np.zeros(3))
+    doc = json.loads(pose_message(42, 1_790_000_000_123_456_789, _estimate(T, np.eye(6) * 1e-6)))
+    assert doc["schema"] == "cubeloc.pose/1"
+    assert doc["seq"] == 42 and doc["stamp_ns"] == 1_790_000_000_123_456_789
+    assert doc["frame_id"] == "world" and doc["child_frame_id"] == "camera"
+    assert doc["state"] == "target" and doc["planes"] == 3
+    np.testing.assert_allclose(doc["position"], [2.0, -1.0, 0.8], atol=1e-12)
+    q = np.array(doc["orientation"])
+    assert abs(np.linalg.norm(q) - 1) < 1e-9 and q[3] >= 0
+    back = Transform.from_quaternion(np.array(doc["position"]), q)
+    assert back.rotation_angle_to(T) < 1e-9
+    assert len(doc["covariance"]) == 36
+
+
+@pytest.mark.parametrize(
+    "transform, why",
+    [
+        (Transform(np.eye(3), [np.nan, 0, 1]), "position"),
+        (Transform(np.eye(3), [np.inf, 0, 1]), "position"),
+        (Transform(np.eye(3) * 1.5, [0, 0, 1]), "rotation"),
+        (Transform(np.diag([1.0, 1.0, -1.0]), [0, 0, 1]), "rotation"),
+        (Transform(np.full((3, 3), np.nan), [0, 0, 1]), "rotation"),
+        (Transform(np.eye(3), [1e6, 0, 0]), "position"),
+    ],
+)
+def test_untrustworthy_poses_are_refused(transform, why):
+    with pytest.raises(UnpublishablePose, match=why):
+        pose_payload(1, 10, _estimate(transform))
+
+
+def test_nan_covariance_and_zero_stamp_are_refused():
+    T = look_at(np.array([2.0, 0.0, 0.5]), np.zeros(3))
+    bad = np.eye(6)
+    bad[2, 2] = math.nan
+    with pytest.raises(UnpublishablePose, match="covariance"):
+        pose_payload(1, 10, _estimate(T, bad))
+    with pytest.raises(UnpublishablePose, match="stamp_ns"):
+        pose_payload(1, 0, _estimate(T))
+
+
+# -- sd_notify over a real datagram socket ----------------------------------------------
+def _bind_notify_socket(tmp_path):
+    path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(path)
+    server.settimeout(2.0)
+    return server, path
+
+
+def test_sdnotify_sends_ready_status_watchdog(tmp_path):
+    server, path = _bind_notify_socket(tmp_path)
+    with server:
+        notifier = SystemdNotifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "4000000", "WATCHDOG_PID": str(os.getpid())})
+        assert notifier.enabled and notifier.watchdog_interval_s == 4.0
+        notifier.watchdog()  # progress before READY: the start timeout moves on
+        assert server.recv(4096) == b"EXTEND_TIMEOUT_USEC=30000000"
+        notifier._last_watchdog = float("-inf")  # (skip the rate limit)
+        notifier.ready(status="streaming")
+        assert server.recv(4096) == b"READY=1\nSTATUS=streaming"
+        notifier.ready(status="streaming")  # READY goes once
+        notifier.watchdog()
+        assert server.recv(4096) == b"WATCHDOG=1"
+        notifier.watchdog()  # rate-limited to a quarter of the interval: nothing sent
+        notifier.status("reconnecting")
+        assert server.recv(4096) == b"STATUS=reconnecting"
+        notifier.stopping()
+        assert server.recv(4096) == b"STOPPING=1\nSTATUS=stopping"
+        notifier.close()
+
+
+def test_sdnotify_never_blocks_on_a_full_socket(tmp_path):
+    server, path = _bind_notify_socket(tmp_path)
+    with server:
+        notifier = SystemdNotifier({"NOTIFY_SOCKET": path})
+        sent = [notifier.notify(status=str(i)) for i in range(100)]  # nobody reads: it fills up
+        assert sent[0] and not all(sent)
+        notifier.ready(status="streaming")
+        assert not notifier.ready_sent  # dropped, so it will be sent again
+        server.setblocking(False)
+        while True:
+            try:
+                server.recv(4096)
+            except BlockingIOError:
+                break
+        server.settimeout(2.0)
+        notifier.ready(status="streaming")
+        assert notifier.ready_sent and server.recv(4096) == b"READY=1\nSTATUS=streaming"
+
+
+def test_sdnotify_abstract_socket_and_absent_socket(tmp_path):
+    name = f"cubeloc-test-{os.getpid()}"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(b"\0" + name.encode())
+    server.settimeout(2.0)
+    with server:
+        SystemdNotifier({"NOTIFY_SOCKET": "@" + name}).notify(status="x")
+        assert server.recv(100) == b"STATUS=x"
+    silent = SystemdNotifier({})
+    assert not silent.enabled and silent.notify(ready=1) is False
+    silent.watchdog()
+    silent.ready("x")
+    # A watchdog meant for another process is not ours.
+    assert SystemdNotifier({"NOTIFY_SOCKET": "/nonexistent", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}).watchdog_interval_s is None
+
+
+# -- loop statistics --------------------------------------------------------------------
+def test_loop_stats_percentiles_and_summary():
+    stats = LoopStats()
+    assert stats.latency_percentiles() == {"p50": None, "p99": None}
+    for i in range(100):
+        stats.record_frame(i, "target", "", (0, 1))
+        stats.record_pose(float(i + 1))
+    lat = stats.latency_percentiles()
+    assert 49 <= lat["p50"] <= 52 and 98 <= lat["p99"] <= 100
+    summary = stats.take_summary()
+    assert summary["frames"] == 100 and summary["poses"] == 100 and summary["status:target"] == 100
+    assert not stats.take_summary()
+
+
+# -- configuration errors: one line, exit 2, nothing started ------------------------------
+def _write_files(tmp_path, width=1280, height=1024):
+    write_camera_info(tmp_path / "camera.yaml", paper_camera(width, height))
+    (tmp_path / "target.yaml").write_text(default_cube_yaml())
+
+
+def _config(tmp_path, extra: str = "", calibration: str | None = None) -> str:
+    """The text of a config for the synthetic camera with files in tmp_path."""
+    calibration = calibration or str(tmp_path / "camera.yaml")
+    return (
+        'name = "unit"\n'
+        "[camera]\nsource = \"synthetic:paper\"\n"
+        f"[positioning]\ncalibration = \"{calibration}\"\ntarget = \"{tmp_path / 'target.yaml'}\"\n"
+        "[zenoh]\nmulticast_scouting = false\nlisten = [\"tcp/127.0.0.1:0\"]\n" + extra
+    )
+
+
+@pytest.mark.parametrize(
+    "case, expect",
+    [
+        ("unknown_key", "unknown key 'camera.exposure'"),
+        ("bad_endpoint", "tcp/127.0.0.1"),
+        ("bad_endpoint_host", "neither an IP address nor a host name"),
+        ("missing_calibration", "calibration file not found"),
+        ("wrong_resolution", "640x512"),
+        ("unknown_source", "unknown camera source"),
+        ("missing_zenoh_file", "zenoh config file"),
+        ("bad_source_option", "unknown option(s) bogus"),
+    ],
+)
+def test_bad_config_exits_2_with_one_line(tmp_path, cli, case, expect):
+    _write_files(tmp_path)
+    write_camera_info(tmp_path / "small.yaml", paper_camera(640, 512))
+    good = _config(tmp_path)
+    config_text = {
+        "unknown_key": good.replace("[camera]\n", "[camera]\nexposure = 5\n"),
+        "bad_endpoint": good.replace("tcp/127.0.0.1:0", "tcp/127.0.0.1"),
+        "bad_endpoint_host": good.replace("tcp/127.0.0.1:0", "tcp/300.1.2.3:7447"),
+        "missing_calibration": _config(tmp_path, calibration=str(tmp_path / "nope.yaml")),
+        "wrong_resolution": _config(tmp_path, calibration=str(tmp_path / "small.yaml")),
+        "unknown_source": good.replace("synthetic:paper", "webcam:0"),
+        "missing_zenoh_file": _config(tmp_path, f"config_file = \"{tmp_path / 'zenoh.json5'}\"\n"),
+        "bad_source_option": good.replace("synthetic:paper", "synthetic:paper?bogus=1"),
+    }[case]
+    path = tmp_path / "case.toml"
+    path.write_text(config_text)
+    result = cli("run", "--config", str(path), timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("cubeloc run: error:") and expect in lines[0], lines[0]
+    assert "Traceback" not in result.stderr
+    assert "daemon started" not in result.stdout and "zenoh session open" not in result.stdout
+
+
+def test_good_config_passes_the_check(tmp_path, cli):
+    _write_files(tmp_path)
+    (tmp_path / "good.toml").write_text(_config(tmp_path))
+    result = cli("run", "--config", str(tmp_path / "good.toml"), "--check", timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "config OK" in result.stdout
+
+
+def test_port_in_use_exits_2_with_one_line(tmp_path, cli):
+    _write_files(tmp_path)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        (tmp_path / "busy.toml").write_text(_config(tmp_path).replace("tcp/127.0.0.1:0", f"tcp/127.0.0.1:{port}"))
+        result = cli("run", "--config", str(tmp_path / "busy.toml"), timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Address already in use" in lines[0] and f"tcp/127.0.0.1:{port}" in lines[0], lines
+    assert ".rs:" not in lines[0]  # no Rust source locations in a user's message

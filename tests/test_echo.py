@@ -1,0 +1,88 @@
+"""``cubeloc echo`` against the daemon's real Zenoh publisher on loopback."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from daemon.messages import CameraStatus, StatusReport, pose_message, status_message
+from daemon.publisher import ZenohPublisher
+from positioning.estimator import PoseEstimate, PoseState
+from positioning.geometry import look_at
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def publisher():
+    import zenoh
+
+    port = free_port()
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    session = zenoh.open(conf)
+    publisher = ZenohPublisher(session, "echotest", "image_width: 1280\n", lambda: True)
+    yield port, publisher
+    publisher.close()
+    session.close()
+
+
+def _status(poses: int) -> bytes:
+    camera = CameraStatus("synthetic:paper", "streaming", model="cubeloc synthetic camera")
+    return status_message(StatusReport(
+        name="echotest", state="target", detail="", stamp_ns=time.time_ns(), fps=9.87, frames=poses,
+        poses=poses, dropped_frames=1, rejected_poses=0, latency_ms={"p50": 12.5, "p99": 40.25},
+        camera=camera, uptime_s=61.0, version="0.1.0",
+    ))
+
+
+def _run_echo(port: int, publisher: ZenohPublisher, *extra: str) -> str:
+    echo = subprocess.Popen(
+        [sys.executable, "-m", "daemon.cli", "echo", "--connect", f"tcp/127.0.0.1:{port}", "--no-scouting",
+         "--count", "3", "--duration", "60", *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    estimate = PoseEstimate(look_at(np.array([1.5, -1.5, 0.91]), np.zeros(3)), PoseState.TARGET, 3, (0, 1, 4), 0.25)
+    seq = 0
+    # Publish until echo has had its three poses (it may connect after the first few).
+    while echo.poll() is None and seq < 600:
+        publisher.publish_pose(pose_message(seq, 1_700_000_000_000_000_000 + seq * 100_000_000, estimate))
+        if seq % 5 == 0:
+            publisher.publish_status(_status(seq))
+        seq += 1
+        time.sleep(0.05)
+    out, err = echo.communicate(timeout=30)
+    assert echo.returncode == 0, err
+    return out
+
+
+def test_echo_prints_readable_lines(publisher):
+    port, pub = publisher
+    out = _run_echo(port, pub)
+    lines = out.splitlines()
+    poses = [line for line in lines if "  pose  " in line]
+    assert len(poses) == 3
+    assert "xyz [ +1.5000  -1.5000  +0.9100] m" in poses[0] and "target 3 faces" in poses[0]
+    assert any(line == "echotest  alive" for line in lines)
+    statuses = [line for line in lines if "  status  " in line]
+    for line in statuses:
+        assert "echotest  status  target" in line and "9.9 fps" in line and "p50 12.5 p99 40.2 ms" in line
+
+
+def test_echo_json_prints_the_payloads(publisher):
+    port, pub = publisher
+    out = _run_echo(port, pub, "--json", "--no-status")
+    docs = [json.loads(line) for line in out.splitlines()]
+    assert len(docs) == 3 and all(d["schema"] == "cubeloc.pose/1" for d in docs)
+    assert docs[0]["position"] == pytest.approx([1.5, -1.5, 0.91])
