@@ -9,7 +9,7 @@ import time
 from bench.common import update_section
 
 # Module names under bench/, in the order they appear in docs/benchmarks.md.
-BENCHMARKS: tuple[str, ...] = ()
+BENCHMARKS: tuple[str, ...] = ("grab", "render", "pose", "e2e", "calibrate", "tracker")
 
 
 def main(argv: list[str]) -> int:

@@ -20,7 +20,16 @@ from cubeloc.errors import CubelocError
 
 # The verbs, in the order ``--help`` lists them.
 VERB_MODULES = (
+    "daemon.commands.run",
+    "daemon.commands.devices",
+    "daemon.commands.record",
     "daemon.commands.demo",
+    "daemon.commands.echo",
+    "daemon.commands.simulate",
+    "daemon.commands.pose",
+    "daemon.commands.track",
+    "daemon.commands.generate",
+    "daemon.commands.calibrate",
 )
 
 

@@ -1,0 +1,95 @@
+"""``cubeloc track --target T --calib C --sequence DIR --out OUT.tum``: the tracker offline.
+
+Replays a recorded sequence (EuRoC layout) through the same ``TrackingProcessor`` the
+daemon runs: initialisation on the target, then tracking, relocalisation and correction
+by the target. Writes every frame with a pose to ``OUT.tum`` (T_world_camera, TUM
+format, readable by ``evo_ape tum``), prints a summary line per state and, when
+``DIR/groundtruth.tum`` exists, the RMS absolute trajectory error with no alignment.
+
+Bundle adjustment runs in the frame loop here (``--background-ba`` to run it in a worker
+thread as the daemon does): offline there is no frame to miss, and the result does not
+depend on thread timing, so two runs give the same trajectory.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "track", help="the whole pipeline (initialisation on the target, then tracker) on a recorded sequence",
+        description="Replay a sequence in the EuRoC layout through the tracker and write the "
+                    "trajectory in the TUM format; prints the ATE when the sequence has groundtruth.tum.",
+    )
+    parser.add_argument("--target", required=True, metavar="FILE", help="target definition YAML")
+    parser.add_argument("--calib", required=True, metavar="FILE", help="camera_info YAML of the camera")
+    parser.add_argument("--sequence", required=True, metavar="DIR", help="sequence directory (mav0/cam0/...)")
+    parser.add_argument("--out", required=True, metavar="OUT.tum", help="trajectory to write (TUM format)")
+    parser.add_argument("--background-ba", action="store_true",
+                        help="run bundle adjustment in a worker thread, as the daemon does")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from dataclasses import replace
+
+    from calib.camera_info import read_camera_info
+    from cubeloc.errors import InputFileError
+    from drivers.sequence import read_mono_png, read_sequence_index
+    from positioning.evaluation import absolute_trajectory_error
+    from positioning.target import load_target
+    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from positioning.trajectory_io import StampedPose, read_tum, write_tum
+
+    target = load_target(args.target)
+    calibration = read_camera_info(args.calib)
+    entries = read_sequence_index(args.sequence)
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise InputFileError(f"{out}: the directory {out.parent} does not exist")
+    groundtruth_path = Path(args.sequence) / "groundtruth.tum"
+    groundtruth = read_tum(groundtruth_path) if groundtruth_path.is_file() else None
+
+    defaults = ProcessorOptions()
+    options = replace(defaults, tracker=replace(
+        defaults.tracker, bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
+    processor = TrackingProcessor(target, calibration, options)
+    poses: list[StampedPose] = []
+    states: Counter[str] = Counter()
+    started = time.perf_counter()
+    try:
+        for seq, entry in enumerate(entries):
+            image = read_mono_png(entry.path)
+            if image.shape != (calibration.height, calibration.width):
+                raise InputFileError(
+                    f"{entry.path}: image is {image.shape[1]}x{image.shape[0]} but {args.calib} is for "
+                    f"{calibration.width}x{calibration.height}"
+                )
+            result = processor.process(image, entry.stamp_ns, seq)
+            if result.estimate is not None:
+                poses.append(StampedPose(entry.stamp_ns, result.estimate.T_world_camera))
+                states[result.estimate.state.value] += 1
+            else:
+                states[result.status] += 1
+    finally:
+        processor.close()
+    elapsed = time.perf_counter() - started
+    write_tum(out, poses)
+    summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
+    print(f"{len(entries)} frames in {elapsed:.1f} s ({len(entries) / max(elapsed, 1e-9):.1f} fps): {summary}")
+    print(f"wrote {len(poses)} poses to {out}")
+    if groundtruth is not None:
+        if not poses:
+            print("no pose to compare with the ground truth", file=sys.stderr)
+            return 1
+        try:
+            ate = absolute_trajectory_error(groundtruth, poses)
+        except ValueError as exc:
+            raise InputFileError(f"{groundtruth_path}: {exc}") from None
+        print(f"ATE (no alignment, {ate.count} poses): RMS {ate.rmse_m * 1000:.2f} mm, "
+              f"median {ate.median_m * 1000:.2f} mm, max {ate.max_m * 1000:.2f} mm")
+    return 0

@@ -1,0 +1,214 @@
+"""Trajectory metrics against ground truth, in the target (world) frame, with no alignment.
+
+Monocular SLAM papers align the estimate to the ground truth (Umeyama, often with scale)
+before computing the absolute trajectory error; that hides exactly what cubeloc exists
+to get right, the metric position in the target's frame. So the absolute error here is
+computed on the poses as published. Poses are paired by timestamp (nearest ground truth
+within ``max_dt_ns``), as ``evo``'s ``associate`` does.
+
+All functions are pure: lists of ``StampedPose`` (``T_world_camera``) in, frozen results out.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+
+import numpy as np
+
+from positioning.trajectory_io import StampedPose
+
+DEFAULT_MAX_DT_NS = 1_000_000  # 1 ms: both files come from the same frame stamps
+
+
+@dataclass(frozen=True)
+class AbsoluteError:
+    """Position error of the camera centre, metres, over the associated poses."""
+
+    rmse_m: float
+    mean_m: float
+    median_m: float
+    max_m: float
+    rotation_rmse_deg: float
+    count: int  # associated pose pairs
+    errors_m: np.ndarray  # (count,) per pose, in time order
+    stamps_ns: np.ndarray  # (count,) the estimate's stamps
+
+
+@dataclass(frozen=True)
+class RelativeError:
+    """Relative pose error per metre travelled (pairs of poses ``delta_m`` of path apart)."""
+
+    delta_m: float
+    translation_rmse_percent: float  # RMS of |translation error| / path length, in %
+    rotation_rmse_deg_per_m: float
+    count: int
+
+
+@dataclass(frozen=True)
+class ScaleDrift:
+    """How the estimate's scale and position drift over a stretch of path."""
+
+    distance_m: float  # ground-truth path length over the segment
+    scale_error_percent: float  # estimated / true path length - 1, in %
+    drift_percent_per_m: float  # slope of the local scale error against distance, %/m
+    end_error_m: float  # position error at the end of the segment
+    translation_drift_percent: float  # growth of the position error / distance, in %
+
+
+def associate(
+    reference: list[StampedPose], estimate: list[StampedPose], max_dt_ns: int = DEFAULT_MAX_DT_NS
+) -> list[tuple[StampedPose, StampedPose]]:
+    """(reference, estimate) pairs: each estimate with its nearest reference in time.
+
+    Estimates with no reference within ``max_dt_ns`` are left out (never interpolated:
+    the ground truth of a synthetic or motion-capture sequence is sampled per frame).
+    """
+    ref = sorted(reference, key=lambda p: p.stamp_ns)
+    stamps = [p.stamp_ns for p in ref]
+    pairs = []
+    for est in sorted(estimate, key=lambda p: p.stamp_ns):
+        i = bisect.bisect_left(stamps, est.stamp_ns)
+        best = None
+        for j in (i - 1, i):
+            if 0 <= j < len(ref):
+                dt = abs(stamps[j] - est.stamp_ns)
+                if dt <= max_dt_ns and (best is None or dt < abs(stamps[best] - est.stamp_ns)):
+                    best = j
+        if best is not None:
+            pairs.append((ref[best], est))
+    return pairs
+
+
+def absolute_trajectory_error(
+    reference: list[StampedPose],
+    estimate: list[StampedPose],
+    max_dt_ns: int = DEFAULT_MAX_DT_NS,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+) -> AbsoluteError:
+    """Position error with no alignment, optionally only over ``[start_ns, end_ns]``.
+
+    Raises ValueError when no pose associates (an empty estimate has no error to report,
+    and reporting 0 would be a lie).
+    """
+    pairs = [
+        (r, e)
+        for r, e in associate(reference, estimate, max_dt_ns)
+        if (start_ns is None or e.stamp_ns >= start_ns) and (end_ns is None or e.stamp_ns <= end_ns)
+    ]
+    if not pairs:
+        raise ValueError("no estimated pose has a ground-truth pose at the same time")
+    errors = np.array(
+        [np.linalg.norm(e.T_world_camera.translation - r.T_world_camera.translation) for r, e in pairs]
+    )
+    angles = np.degrees([r.T_world_camera.rotation_angle_to(e.T_world_camera) for r, e in pairs])
+    return AbsoluteError(
+        rmse_m=float(np.sqrt(np.mean(errors**2))),
+        mean_m=float(errors.mean()),
+        median_m=float(np.median(errors)),
+        max_m=float(errors.max()),
+        rotation_rmse_deg=float(np.sqrt(np.mean(np.square(angles)))),
+        count=len(pairs),
+        errors_m=errors,
+        stamps_ns=np.array([e.stamp_ns for _, e in pairs], dtype=np.int64),
+    )
+
+
+def _path_lengths(poses: list[StampedPose]) -> np.ndarray:
+    """Cumulative path length (N,) of the camera centre, metres."""
+    centres = np.array([p.T_world_camera.translation for p in poses])
+    steps = np.linalg.norm(np.diff(centres, axis=0), axis=1) if len(poses) > 1 else np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def relative_pose_error(
+    reference: list[StampedPose],
+    estimate: list[StampedPose],
+    delta_m: float = 1.0,
+    max_dt_ns: int = DEFAULT_MAX_DT_NS,
+) -> RelativeError:
+    """For every pose i, the pose j where the true path has grown by ``delta_m``; the
+    error of the estimated motion i->j against the true one, per metre of true path.
+
+    Raises ValueError when the associated path is shorter than ``delta_m``.
+    """
+    if delta_m <= 0:
+        raise ValueError(f"delta_m must be positive, got {delta_m}")
+    pairs = associate(reference, estimate, max_dt_ns)
+    ref = [r for r, _ in pairs]
+    est = [e for _, e in pairs]
+    lengths = _path_lengths(ref)
+    translation, rotation = [], []
+    for i in range(len(pairs)):
+        j = int(np.searchsorted(lengths, lengths[i] + delta_m))
+        if j >= len(pairs):
+            break
+        travelled = lengths[j] - lengths[i]
+        true_motion = ref[i].T_world_camera.inverse() @ ref[j].T_world_camera
+        est_motion = est[i].T_world_camera.inverse() @ est[j].T_world_camera
+        error = true_motion.inverse() @ est_motion
+        translation.append(np.linalg.norm(error.translation) / travelled)
+        rotation.append(np.degrees(_angle(error.rotation)) / travelled)
+    if not translation:
+        raise ValueError(f"the trajectory is shorter than {delta_m} m: no relative error to report")
+    return RelativeError(
+        delta_m=delta_m,
+        translation_rmse_percent=float(100.0 * np.sqrt(np.mean(np.square(translation)))),
+        rotation_rmse_deg_per_m=float(np.sqrt(np.mean(np.square(rotation)))),
+        count=len(translation),
+    )
+
+
+def _angle(rotation: np.ndarray) -> float:
+    """Angle (radians) of a rotation matrix."""
+    return float(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def scale_drift(
+    reference: list[StampedPose],
+    estimate: list[StampedPose],
+    start_ns: int,
+    end_ns: int,
+    window_m: float = 0.25,
+    max_dt_ns: int = DEFAULT_MAX_DT_NS,
+) -> ScaleDrift:
+    """Scale error and drift of the estimate over ``[start_ns, end_ns]`` (say, while the
+    target was out of view).
+
+    The local scale is the ratio of estimated to true displacement over consecutive
+    stretches of ``window_m`` of true path; its slope against distance (least squares) is
+    the scale drift in %/m. Raises ValueError when the segment is shorter than two windows.
+    """
+    pairs = [(r, e) for r, e in associate(reference, estimate, max_dt_ns) if start_ns <= e.stamp_ns <= end_ns]
+    if len(pairs) < 3:
+        raise ValueError("the segment has fewer than 3 associated poses")
+    ref = [r for r, _ in pairs]
+    est = [e for _, e in pairs]
+    lengths = _path_lengths(ref)
+    distance = float(lengths[-1])
+    est_lengths = _path_lengths(est)
+    ratios, at = [], []
+    i = 0
+    while True:
+        j = int(np.searchsorted(lengths, lengths[i] + window_m))
+        if j >= len(pairs):
+            break
+        true_step = np.linalg.norm(ref[j].T_world_camera.translation - ref[i].T_world_camera.translation)
+        est_step = np.linalg.norm(est[j].T_world_camera.translation - est[i].T_world_camera.translation)
+        if true_step > 1e-6:
+            ratios.append(est_step / true_step - 1.0)
+            at.append(0.5 * (lengths[i] + lengths[j]))
+        i = j
+    if len(ratios) < 2:
+        raise ValueError(f"the segment ({distance:.2f} m) is shorter than two windows of {window_m} m")
+    slope = float(np.polyfit(np.array(at), np.array(ratios), 1)[0])
+    start_error = np.linalg.norm(est[0].T_world_camera.translation - ref[0].T_world_camera.translation)
+    end_error = np.linalg.norm(est[-1].T_world_camera.translation - ref[-1].T_world_camera.translation)
+    return ScaleDrift(
+        distance_m=distance,
+        scale_error_percent=float(100.0 * (est_lengths[-1] / distance - 1.0)) if distance > 0 else 0.0,
+        drift_percent_per_m=100.0 * slope,
+        end_error_m=float(end_error),
+        translation_drift_percent=float(100.0 * (end_error - start_error) / distance) if distance > 0 else 0.0,
+    )

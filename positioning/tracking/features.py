@@ -1,0 +1,139 @@
+"""The feature front end: Shi-Tomasi corners tracked frame to frame with pyramidal KLT.
+
+Why KLT and not ORB matching for tracking: on two shared cores at 1280x1024 a KLT step
+on a few hundred corners costs a few milliseconds, where ORB extraction
+and matching on every frame costs several times that. KLT also gives sub-pixel positions, which the metric accuracy
+needs, and a track's id carries its map point from frame to frame, so no descriptor
+matching is needed while tracking. ORB descriptors are computed only on keyframes, for
+relocalisation (``relocalise``).
+
+Corners are found on a half-size image (4x less work, and corners of a 2x2 area are
+what KLT's window locks on anyway), away from existing tracks (``min_distance_px``),
+away from the image border and outside the target's outline: the target's corners reach
+the tracker as fixed world points already, and points on a small cube would bunch.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from positioning.tracking.options import FeatureOptions
+from positioning.tracking.types import Tracks
+
+
+def find_corners(image: np.ndarray, count: int, options: FeatureOptions, mask: np.ndarray | None = None,
+                 min_distance_px: int | None = None) -> np.ndarray:
+    """Up to ``count`` Shi-Tomasi corners (K, 2), full-resolution pixels, found on the
+    image reduced by ``detect_scale`` (``mask`` is at that reduced size). Relocalisation
+    uses the same function, so it finds the very corners the tracks started from."""
+    s = max(1, options.detect_scale)
+    small = cv2.resize(image, (image.shape[1] // s, image.shape[0] // s), interpolation=cv2.INTER_AREA) \
+        if s > 1 else image
+    distance = options.min_distance_px if min_distance_px is None else min_distance_px
+    corners = cv2.goodFeaturesToTrack(small, count, options.quality_level, max(1, distance // s),
+                                      mask=mask, blockSize=options.block_size)
+    if corners is None:
+        return np.zeros((0, 2))
+    return corners.reshape(-1, 2) * s + (s - 1) / 2.0  # the centre of the s x s block
+
+
+class KltFrontEnd:
+    def __init__(self, options: FeatureOptions | None = None) -> None:
+        self.options = options or FeatureOptions()
+        self.reset()
+
+    def reset(self) -> None:
+        self._previous: np.ndarray | None = None  # the previous image
+        self._image_shape: tuple[int, int] | None = None
+        self.ids = np.zeros(0, np.int64)
+        self.pixels = np.zeros((0, 2), np.float32)
+        self._next_id = 0
+
+    def _keep(self, keep: np.ndarray) -> None:
+        self.ids, self.pixels = self.ids[keep], self.pixels[keep]
+
+    @property
+    def tracks(self) -> Tracks:
+        return Tracks(self.ids.copy(), self.pixels.astype(np.float64))
+
+    def track(self, image: np.ndarray) -> Tracks:
+        """Follow the live tracks into ``image``; tracks that fail the forward-backward
+        check or leave the image end here."""
+        o = self.options
+        # OpenCV 5's Python binding takes images only (no prebuilt pyramids), so each call
+        # builds its own pyramid: a millisecond or two per image at 1280x1024.
+        if self._previous is None or len(self.ids) == 0 or image.shape != self._image_shape:
+            if image.shape != self._image_shape:  # a new camera mode: nothing carries over
+                self.ids, self.pixels = np.zeros(0, np.int64), np.zeros((0, 2), np.float32)
+            self._previous, self._image_shape = image, image.shape
+            return self.tracks
+        window = (o.window_px, o.window_px)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+        prev = self.pixels.reshape(-1, 1, 2)
+        forward, status, _ = cv2.calcOpticalFlowPyrLK(
+            self._previous, image, prev, None, winSize=window, maxLevel=o.pyramid_levels,
+            criteria=criteria,
+        )
+        backward, back_status, _ = cv2.calcOpticalFlowPyrLK(
+            image, self._previous, forward, None, winSize=window, maxLevel=o.pyramid_levels,
+            criteria=criteria,
+        )
+        forward = forward.reshape(-1, 2)
+        fb_error = np.linalg.norm(backward.reshape(-1, 2) - self.pixels, axis=1)
+        h, w = image.shape
+        b = o.border_px / 2
+        keep = (
+            (status.ravel() == 1) & (back_status.ravel() == 1) & (fb_error <= o.max_fb_error_px)
+            & (forward[:, 0] >= b) & (forward[:, 0] < w - b) & (forward[:, 1] >= b) & (forward[:, 1] < h - b)
+        )
+        self.pixels = forward.astype(np.float32)
+        self._keep(keep)
+        self._previous, self._image_shape = image, image.shape
+        return self.tracks
+
+    def detect(self, image: np.ndarray, exclude_polygon: np.ndarray | None = None) -> Tracks:
+        """New corners in ``image`` (the one last tracked), up to ``max_features`` live
+        tracks in all, outside ``exclude_polygon`` ((K, 2) pixels, the target's outline)."""
+        o = self.options
+        need = o.max_features - len(self.ids)
+        if need <= 0:
+            return Tracks.empty()
+        s = max(1, o.detect_scale)
+        mask = np.zeros((image.shape[0] // s, image.shape[1] // s), np.uint8)
+        border = max(1, o.border_px // s)
+        mask[border:-border, border:-border] = 255
+        radius = max(1, o.min_distance_px // s)
+        for x, y in self.pixels / s:
+            cv2.circle(mask, (int(round(x)), int(round(y))), radius, 0, -1)
+        if exclude_polygon is not None and len(exclude_polygon) >= 3:
+            hull = cv2.convexHull(np.asarray(exclude_polygon, np.float32) / s).astype(np.int32)
+            cv2.fillConvexPoly(mask, hull, 0)
+            cv2.polylines(mask, [hull], True, 0, thickness=max(1, 2 * o.target_margin_px // s))
+        pixels = find_corners(image, need, o, mask)
+        if len(pixels) == 0:
+            return Tracks.empty()
+        return self.add(pixels)
+
+    def add(self, pixels: np.ndarray) -> Tracks:
+        """Start new tracks at ``pixels``; returns them with their fresh ids."""
+        pixels = np.asarray(pixels, np.float32).reshape(-1, 2)
+        ids = np.arange(self._next_id, self._next_id + len(pixels), dtype=np.int64)
+        self._next_id += len(pixels)
+        self._append(ids, pixels)
+        return Tracks(ids, pixels.astype(np.float64))
+
+    def _append(self, ids: np.ndarray, pixels: np.ndarray) -> None:
+        self.ids = np.concatenate([self.ids, ids])
+        self.pixels = np.concatenate([self.pixels, pixels])
+
+    def adopt(self, ids: np.ndarray, pixels: np.ndarray) -> None:
+        """Follow the given (existing) track ids from ``pixels``: after relocalisation,
+        the matched map points come back as tracks under their own ids."""
+        ids = np.asarray(ids, np.int64)
+        fresh = ~np.isin(ids, self.ids)
+        self._append(ids[fresh], np.asarray(pixels, np.float32).reshape(-1, 2)[fresh])
+
+    def drop(self, ids: np.ndarray) -> None:
+        if len(ids):
+            self._keep(~np.isin(self.ids, ids))

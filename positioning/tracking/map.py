@@ -1,0 +1,125 @@
+"""The tracker's map: keyframes with their observations, and 3-D points, in the world frame.
+
+A point's id is the id of the feature track it was triangulated from (one track, one
+point), so a keyframe stores its observations by track id and a point's observations
+are the keyframes holding its id. Keyframes seen while the target was trusted are
+*anchored*: they also hold the target's corners (fixed world points) for bundle
+adjustment. The map is internal, mutable state of one tracker; it is never shared
+between threads without the tracker's lock.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from positioning.geometry import Transform
+
+
+@dataclass
+class Keyframe:
+    kf_id: int
+    stamp_ns: int
+    T_world_camera: Transform
+    track_ids: np.ndarray  # (N,) int64: tracks observed here (with or without a point)
+    xn: np.ndarray  # (N, 2) their normalised coordinates
+    anchored: bool = False
+    target_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (M, 3) fixed corners
+    target_xn: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (M, 2) observed
+    # For relocalisation: ORB descriptors of this keyframe's map points
+    descriptor_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,)
+    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # (K, 32)
+
+    def __post_init__(self) -> None:
+        self._index = {int(t): i for i, t in enumerate(self.track_ids)}
+
+    def observation(self, track_id: int) -> np.ndarray | None:
+        i = self._index.get(int(track_id))
+        return None if i is None else self.xn[i]
+
+    def add_observations(self, track_ids: np.ndarray, xn: np.ndarray) -> None:
+        fresh = np.array([int(t) not in self._index for t in track_ids], dtype=bool)
+        if not fresh.any():
+            return
+        start = len(self.track_ids)
+        self.track_ids = np.concatenate([self.track_ids, np.asarray(track_ids, np.int64)[fresh]])
+        self.xn = np.concatenate([self.xn, np.asarray(xn, np.float64).reshape(-1, 2)[fresh]])
+        for i, t in enumerate(self.track_ids[start:], start=start):
+            self._index[int(t)] = i
+
+
+class Map:
+    """Keyframes in insertion order and points by track id."""
+
+    def __init__(self) -> None:
+        self.keyframes: OrderedDict[int, Keyframe] = OrderedDict()
+        self.points: dict[int, np.ndarray] = {}  # track id -> (3,) world position
+        self.point_birth: dict[int, int] = {}  # track id -> keyframe it was triangulated at
+        self.next_kf_id = 0
+        # Bumped whenever the map is moved as a whole (correction, reset), so that a bundle
+        # adjustment computed on the old map is not applied to the new one.
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def last_keyframe(self) -> Keyframe | None:
+        return next(reversed(self.keyframes.values())) if self.keyframes else None
+
+    def add_keyframe(self, stamp_ns: int, T_world_camera: Transform, track_ids: np.ndarray, xn: np.ndarray,
+                     target_world: np.ndarray | None = None, target_xn: np.ndarray | None = None) -> Keyframe:
+        anchored = target_world is not None and len(target_world) > 0
+        kf = Keyframe(
+            self.next_kf_id, stamp_ns, T_world_camera, np.asarray(track_ids, np.int64).copy(),
+            np.asarray(xn, np.float64).reshape(-1, 2).copy(), anchored,
+            np.asarray(target_world, np.float64).reshape(-1, 3) if anchored else np.zeros((0, 3)),
+            np.asarray(target_xn, np.float64).reshape(-1, 2) if anchored else np.zeros((0, 2)),
+        )
+        self.keyframes[kf.kf_id] = kf
+        self.next_kf_id += 1
+        return kf
+
+    def add_point(self, track_id: int, position: np.ndarray, birth_kf: int) -> None:
+        self.points[int(track_id)] = np.asarray(position, np.float64).reshape(3).copy()
+        self.point_birth[int(track_id)] = birth_kf
+
+    def remove_point(self, track_id: int) -> None:
+        self.points.pop(int(track_id), None)
+        self.point_birth.pop(int(track_id), None)
+
+    def observers(self, track_id: int) -> list[Keyframe]:
+        return [kf for kf in self.keyframes.values() if kf.observation(track_id) is not None]
+
+    def first_observer(self, track_id: int) -> Keyframe | None:
+        for kf in self.keyframes.values():
+            if kf.observation(track_id) is not None:
+                return kf
+        return None
+
+    def correct(self, correction: Transform) -> None:
+        """Move the drifted part of the map (what was built without the target) by
+        ``correction`` (T_true_drifted): the target's return says where it really is."""
+        for kf in self.keyframes.values():
+            if not kf.anchored:
+                kf.T_world_camera = correction @ kf.T_world_camera
+        for track_id, birth in self.point_birth.items():
+            kf = self.keyframes.get(birth)
+            if kf is None or not kf.anchored:
+                self.points[track_id] = correction.apply(self.points[track_id][None])[0]
+        self.epoch += 1
+
+    def cull(self, max_keyframes: int, live_track_ids: set[int]) -> None:
+        """Drop the oldest keyframes beyond ``max_keyframes`` and the points nobody holds:
+        no remaining keyframe observes them and no live track follows them."""
+        while len(self.keyframes) > max_keyframes:
+            self.keyframes.popitem(last=False)
+        observed: set[int] = set(live_track_ids)
+        for kf in self.keyframes.values():
+            observed.update(int(t) for t in kf.track_ids)
+        for track_id in [t for t in self.points if t not in observed]:
+            self.remove_point(track_id)
+        # keyframe observations of tracks that will never become points cost memory only
+        # while the keyframe lives, so they go with it

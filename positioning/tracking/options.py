@@ -1,0 +1,88 @@
+"""Every tunable of the tracker, in frozen dataclasses passed explicitly.
+
+Defaults suit the paper's camera (1280x1024, fx 1667 px) in a room a few metres across.
+Pixel thresholds are in pixels of the full-resolution image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class FeatureOptions:
+    """Shi-Tomasi corners tracked with pyramidal Lucas-Kanade (KLT)."""
+
+    max_features: int = 300  # tracks kept alive; new corners fill up to this at keyframes
+    min_distance_px: int = 24  # between corners, so they spread over the image
+    quality_level: float = 0.01  # relative to the strongest corner (Shi-Tomasi)
+    block_size: int = 7
+    detect_scale: int = 2  # corners are found on a 1/2-size image (4x less work), then refined
+    window_px: int = 21  # KLT window at each pyramid level
+    pyramid_levels: int = 3
+    max_fb_error_px: float = 0.5  # forward-backward check: track back and compare
+    target_margin_px: int = 20  # no corners within this of the target's image outline
+    border_px: int = 16  # no corners this close to the image edge
+
+
+@dataclass(frozen=True)
+class InitOptions:
+    """Algorithms 1 and 2 of the paper: a reference frame A, a second frame B."""
+
+    min_features: int = 80  # N_min: corners on the reference frame
+    min_points: int = 60  # N_min: triangulated points for the map to count as initialised
+    min_planes: int = 2  # target faces a pose needs to be trusted for initialisation
+    min_parallax_deg: float = 1.0  # median rotation-compensated parallax A<->B
+    max_reproj_px: float = 1.5  # a triangulated point must reproject within this in A and B
+    min_point_parallax_deg: float = 0.5  # a single point's own parallax
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    """Sliding-window bundle adjustment (SciPy least_squares, sparse Jacobian)."""
+
+    window_keyframes: int = 6
+    max_iterations: int = 10  # residual evaluations per robust round (SciPy max_nfev)
+    robust_rounds: int = 2  # reweighting rounds (Huber weights from the last residuals)
+    huber_px: float = 1.5
+    max_residual_px: float = 2.0  # points erring more than this after BA are dropped...
+    min_residual_px: float = 0.5  # ...or more than 3 robust sigmas of all, but never below this
+    background: bool = True  # run in a worker thread (the daemon); False: in the frame loop
+    # The target's corners fit to ~0.08 px, KLT tracks to ~0.3 px over their life (measured on
+    # the synthetic camera): weights in inverse proportion keep the anchors in charge.
+    target_weight: float = 8.0
+
+
+@dataclass(frozen=True)
+class TrackerOptions:
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    init: InitOptions = field(default_factory=InitOptions)
+    bundle: BundleOptions = field(default_factory=BundleOptions)
+    # PnP on map points
+    pnp_reproj_px: float = 2.0  # RANSAC inlier threshold
+    pnp_min_reproj_px: float = 0.5  # the robust refinement threshold never goes below this
+    pnp_iterations: int = 60
+    min_pnp_inliers: int = 20  # fewer inliers: the frame has no pose (lost)
+    # keyframes
+    keyframe_baseline_ratio: float = 0.05  # baseline / median depth since the last keyframe
+    anchored_keyframe_baseline_ratio: float = 0.015  # the same while the target is trusted:
+    # anchored keyframes are what holds the map in the target frame, so take more of them
+    keyframe_tracked_ratio: float = 0.8  # map points still tracked / at the last keyframe
+    keyframe_min_points: int = 150  # fewer tracked map points: make a keyframe now
+    # low enough that a camera walking forwards and turning keeps its map stocked (room_walk
+    # was lost at 1.5 deg); bundle adjustment then refines the depths with more views
+    triangulation_min_parallax_deg: float = 0.7
+    triangulation_max_reproj_px: float = 2.0
+    max_keyframes: int = 40  # older keyframes and the points only they saw are culled
+    # target
+    anchor_max_reproj_px: float = 0.25  # a target pose fitting worse (a grazing face) anchors no keyframe
+    anchor_max_position_std_m: float = 0.005  # ...nor one whose covariance says it is this uncertain
+    relocalised_jump_m: float = 0.01  # a target pose this far from the tracker's: a visible jump
+    relocalised_jump_deg: float = 1.0
+    fuse_target_with_map: bool = False  # target visible: one pose from its corners and the map points
+    max_motion_m: float = 0.5  # a tracker pose further than this from the prediction is refused
+    # relocalisation against keyframes (ORB)
+    orb_features: int = 2000  # corners described in a lost frame
+    reloc_min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible
+    reloc_ratio: float = 0.8  # Lowe's ratio test on Hamming distances
+    reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)

@@ -1,0 +1,115 @@
+"""Relocalisation against the map's keyframes with ORB descriptors.
+
+When tracking is lost away from the target (a blank wall, a covered lens, a fast turn),
+the tracks are gone but the map is still good. Each keyframe keeps ORB descriptors of its
+map points (computed at the KLT positions, so they describe exactly the tracked points);
+a lost frame's ORB features are matched against them (Hamming distance, Lowe's ratio
+test), and PnP with RANSAC on the matches gives the pose back. The matched points then
+become tracks again under their own ids. ORB is BSD-licensed in OpenCV and binary, so
+matching a thousand features against a few thousand descriptors takes milliseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calib.camera_info import CameraCalibration
+from positioning.geometry import Transform
+from positioning.tracking.features import find_corners
+from positioning.tracking.map import Keyframe, Map
+from positioning.tracking.options import TrackerOptions
+from positioning.tracking.twoview import project_normalised, undistort
+
+ORB_PATCH_PX = 31  # ORB's default patch; keypoints closer than half of it to the edge are dropped
+
+
+@dataclass(frozen=True)
+class Relocalisation:
+    T_world_camera: Transform
+    point_ids: np.ndarray  # (K,) map points found again (inliers)
+    pixels: np.ndarray  # (K, 2) where they are in this image
+    matches: int
+
+
+class Relocaliser:
+    def __init__(self, calibration: CameraCalibration, options: TrackerOptions) -> None:
+        self.calibration = calibration
+        self.options = options
+        self._orb = cv2.ORB_create(nfeatures=options.orb_features, patchSize=ORB_PATCH_PX,
+                                   edgeThreshold=ORB_PATCH_PX)
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def describe(self, image: np.ndarray, keyframe: Keyframe, world_map: Map, ids: np.ndarray,
+                 pixels: np.ndarray) -> None:
+        """Store on ``keyframe`` the ORB descriptors of its tracks that have map points."""
+        has = np.array([int(t) in world_map.points for t in ids], dtype=bool)
+        if not has.any():
+            return
+        keypoints, descriptors = self._describe(image, pixels[has], np.flatnonzero(has))
+        if descriptors is None or not keypoints:
+            return
+        keyframe.descriptor_ids = np.array([ids[k.class_id] for k in keypoints], dtype=np.int64)
+        keyframe.descriptors = descriptors
+
+    def _describe(self, image: np.ndarray, pixels: np.ndarray, tags: np.ndarray) -> tuple[list, np.ndarray | None]:
+        """Upright ORB descriptors (angle 0, full resolution) at the given pixels; each
+        keypoint's ``class_id`` is its tag (OpenCV drops keypoints too near the edge)."""
+        keypoints = [cv2.KeyPoint(float(x), float(y), ORB_PATCH_PX, 0.0, 0, 0, int(t))
+                     for t, (x, y) in zip(tags, pixels, strict=True)]
+        return self._orb.compute(image, keypoints)
+
+    def relocalise(self, image: np.ndarray, world_map: Map) -> Relocalisation | None:
+        """The pose of ``image`` in the map, or None when too few matches agree."""
+        o = self.options
+        known: dict[int, np.ndarray] = {}
+        for kf in world_map.keyframes.values():  # newest last, so the newest descriptor wins
+            for point_id, descriptor in zip(kf.descriptor_ids, kf.descriptors, strict=True):
+                if int(point_id) in world_map.points:
+                    known[int(point_id)] = descriptor
+        if len(known) < o.reloc_min_inliers:
+            return None
+        map_ids = np.array(list(known), dtype=np.int64)
+        map_descriptors = np.array(list(known.values()), dtype=np.uint8)
+        # The same corners as the tracks (Shi-Tomasi), described upright: ORB's own FAST
+        # keypoints land elsewhere and its orientation would not match the keyframes'.
+        # dense (6 px apart): the greedy spacing of the tracker's own detection would pick
+        # a different subset of corners in a different view
+        corners = find_corners(image, o.orb_features, o.features, min_distance_px=6)
+        if len(corners) < o.reloc_min_inliers:
+            return None
+        keypoints, descriptors = self._describe(image, corners, np.arange(len(corners)))
+        if descriptors is None or len(keypoints) < o.reloc_min_inliers:
+            return None
+        pairs = self._matcher.knnMatch(descriptors, map_descriptors, k=2)
+        best: dict[int, tuple[float, int]] = {}  # map index -> (distance, keypoint index)
+        for pair in pairs:
+            if len(pair) == 2 and pair[0].distance < o.reloc_ratio * pair[1].distance:
+                m = pair[0]
+                if m.trainIdx not in best or m.distance < best[m.trainIdx][0]:
+                    best[m.trainIdx] = (m.distance, m.queryIdx)
+        if len(best) < o.reloc_min_inliers:
+            return None
+        train = np.array(list(best), dtype=np.int64)
+        query = np.array([best[t][1] for t in train], dtype=np.int64)
+        pixels = np.array([keypoints[q].pt for q in query], dtype=np.float64)
+        ids = map_ids[train]
+        obj = np.array([world_map.points[int(i)] for i in ids])
+        xn = undistort(pixels, self.calibration)
+        threshold = o.reloc_reproj_px / self.calibration.fx
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, xn, np.eye(3), None, iterationsCount=500,
+                                                     reprojectionError=threshold, confidence=0.999,
+                                                     flags=cv2.SOLVEPNP_SQPNP)
+        if not ok or inliers is None or len(inliers) < o.reloc_min_inliers:
+            return None
+        inl = inliers.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], xn[inl], np.eye(3), None, rvec.reshape(3, 1), tvec.reshape(3, 1))
+        T_camera_world = Transform.from_rvec_tvec(rvec, tvec)
+        proj, z = project_normalised(T_camera_world, obj)
+        good = (z > 0) & (np.linalg.norm(proj - xn, axis=1) <= threshold)
+        pose = T_camera_world.inverse()
+        if good.sum() < o.reloc_min_inliers or not np.all(np.isfinite(pose.matrix())):
+            return None
+        return Relocalisation(pose, ids[good], pixels[good], len(best))

@@ -1,0 +1,372 @@
+"""The tracker's back end: initialisation on the target, then frame-to-map tracking.
+
+Per frame it takes feature tracks (ids and pixels, from ``features.KltFrontEnd`` or any
+other source) and, when the target is in view, a trusted target pose with its corners.
+
+- Before a map exists it runs the paper's Algorithms 1 and 2 (``initialiser``).
+- Afterwards the pose comes from PnP with RANSAC on the tracks that carry map points,
+  seeded and sanity-checked by a constant-velocity motion model, then refined with
+  Levenberg-Marquardt on the inliers.
+- While the target is trusted, its pose is the published pose and keyframes made then
+  are *anchored*: the target's corners enter bundle adjustment as fixed world points, so
+  the map cannot drift while the target is visible. When the target comes back and
+  disagrees with the tracker by more than ``relocalised_jump_*``, the drifted part of the
+  map is moved by the difference and the frame is published as RELOCALISED.
+- Keyframes on baseline (parallax) and visibility criteria; tracks without a point are
+  triangulated against the first keyframe that saw them; a sliding-window bundle
+  adjustment runs after each keyframe, in a worker thread when ``bundle.background``.
+- No pose from either source: the frame is "lost" (no estimate). Recovery is by the
+  target, or by ``relocalised()`` when the caller matched the image to keyframes.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import structlog
+
+from calib.camera_info import CameraCalibration
+from positioning.estimator import FrameResult, PoseEstimate, PoseState
+from positioning.geometry import Transform
+from positioning.tracking import bundle
+from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
+from positioning.tracking.map import Map
+from positioning.tracking.options import TrackerOptions
+from positioning.tracking.twoview import project_normalised, triangulate, undistort
+from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
+
+log = structlog.get_logger()
+
+
+class Tracker:
+    def __init__(self, calibration: CameraCalibration, options: TrackerOptions | None = None) -> None:
+        self.calibration = calibration
+        self.options = options or TrackerOptions()
+        self.fx = calibration.fx
+        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._pending: concurrent.futures.Future | None = None
+        self.bundle_runs: list[bundle.BundleSolution] = []  # the last few, for benchmarks and tests
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget the map and initialise again on the target."""
+        self._drain_bundle()
+        self.map = Map()
+        self.initialiser = Initialiser(self.options.init, self.fx)
+        self.initialised = False
+        self.lost = False
+        self._last: Transform | None = None  # pose of the last frame with one
+        self._velocity: Transform | None = None  # T_prev_last (camera motion per frame)
+        self._frame_tracks = Tracks.empty()
+        self._frame_xn = np.zeros((0, 2))
+        self._frame_pose: Transform | None = None
+        self._frame_target: TargetObservation | None = None
+        self._frame_stamp = 0
+        self._frame_keyframe = None
+        self._reference_target: TargetObservation | None = None
+        self._kf_points_at_insert = 0
+        self._frames_since_keyframe = 0
+        self._target_seen = False  # the last frame had a trusted target pose
+        self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
+
+    def close(self) -> None:
+        self._drain_bundle()
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+
+    # ------------------------------------------------------------------ per frame
+    def step(self, stamp_ns: int, tracks: Tracks, target: TargetObservation | None) -> TrackerOutput:
+        self._collect_bundle(wait=False)
+        xn = undistort(tracks.pixels, self.calibration)
+        self._frame_tracks, self._frame_xn, self._frame_stamp = tracks, xn, stamp_ns
+        self._frame_target, self._frame_keyframe, self._frame_pose = target, None, None
+        trusted = target if target is not None and target.planes >= self.options.init.min_planes else None
+        if not self.initialised:
+            return self._initialising(stamp_ns, tracks, xn, trusted)
+
+        prediction = self._predict()
+        tracked, inliers, drop, rms = self._pnp(tracks, xn, prediction)
+        if trusted is not None:
+            pose = trusted.T_world_camera
+            state = PoseState.TARGET
+            before = tracked if tracked is not None else (None if self.lost else prediction)
+            if self.lost:
+                state = PoseState.RELOCALISED
+            elif before is not None and not self._target_seen and self._jumped(before, pose):
+                # the map drifted while the target was away: move it back with the camera
+                self.map.correct(pose @ before.inverse())
+                state = PoseState.RELOCALISED
+                log.debug("tracker.corrected", jump_m=float(np.linalg.norm(pose.translation - before.translation)))
+            elif tracked is not None and self.options.fuse_target_with_map:
+                pose = self._fuse(trusted, tracks, xn, pose)
+            estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
+                                    trusted.covariance)
+        elif tracked is not None:
+            pose = tracked
+            state = PoseState.RELOCALISED if self.lost else PoseState.TRACKING
+            estimate = PoseEstimate(pose, state, 0, (), rms, None)
+        else:
+            self.lost = True
+            self._velocity = None
+            self._target_seen = False
+            detail = f"{inliers} map points agree with a pose, {self.options.min_pnp_inliers} needed"
+            return TrackerOutput(FrameResult(None, "lost", detail), False, drop)
+
+        forced = state is PoseState.RELOCALISED
+        self._target_seen = trusted is not None
+        self.lost = False
+        self._update_motion(pose)
+        self._frame_pose = pose
+        want = self._maybe_keyframe(stamp_ns, pose, tracks, xn, trusted, inliers, forced)
+        status = "ok" if state is not PoseState.RELOCALISED else "relocalised"
+        return TrackerOutput(FrameResult(estimate, status), want, drop, keyframe=want)
+
+    def add_tracks(self, tracks: Tracks) -> None:
+        """Fresh corners detected in the frame just stepped (after ``want_features``)."""
+        if len(tracks.ids) == 0:
+            return
+        xn = undistort(tracks.pixels, self.calibration)
+        all_ids = np.concatenate([self._frame_tracks.ids, tracks.ids])
+        all_xn = np.concatenate([self._frame_xn, xn])
+        self._frame_tracks = Tracks(all_ids, np.concatenate([self._frame_tracks.pixels, tracks.pixels]))
+        self._frame_xn = all_xn
+        if self._frame_keyframe is not None:
+            self._frame_keyframe.add_observations(tracks.ids, xn)
+        elif not self.initialised and self._anchors(self._frame_target):
+            frame = InitFrame(self._frame_stamp, self._frame_target.T_world_camera, self._frame_target.planes,
+                              all_ids, all_xn)
+            if self.initialiser.try_reference(frame).status is InitStatus.REFERENCE_SET:
+                self._reference_target = self._frame_target
+
+    def relocalised(self, stamp_ns: int, pose: Transform, tracks: Tracks) -> None:
+        """The caller found ``pose`` by matching this frame to the keyframes, and follows
+        the matched map points again as ``tracks``. The frame becomes a keyframe, so the
+        fresh corners that ``add_tracks`` brings next can be triangulated against it."""
+        self.lost = False
+        self._last, self._velocity = pose, None
+        self._frame_pose, self._frame_stamp = pose, stamp_ns
+        self._frame_tracks, self._frame_xn = tracks, undistort(tracks.pixels, self.calibration)
+        self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
+        self._frames_since_keyframe = 0
+        self._kf_points_at_insert = len(tracks.ids)
+
+    @property
+    def last_pose(self) -> Transform | None:
+        return self._last
+
+    # ------------------------------------------------------------------ initialisation
+    def _initialising(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
+                      trusted: TargetObservation | None) -> TrackerOutput:
+        empty = np.zeros(0, np.int64)
+        if trusted is None:
+            status = InitStatus.NO_TARGET_POSE
+            return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
+        estimate = PoseEstimate(trusted.T_world_camera, PoseState.TARGET, trusted.planes, trusted.tag_ids,
+                                trusted.reproj_rms_px, trusted.covariance)
+        self._update_motion(trusted.T_world_camera)
+        if not self._anchors(trusted):
+            # published, but too uncertain to fix the map's scale and frame
+            return TrackerOutput(FrameResult(estimate, "ok", "initialising: target pose too uncertain to anchor"),
+                                 False, empty, InitStatus.UNCERTAIN_TARGET_POSE)
+        frame = InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, tracks.ids, xn)
+        if self.initialiser.reference is None:
+            # Algorithm 1 runs on this frame once the front end has added fresh corners
+            return TrackerOutput(FrameResult(estimate, "ok", "initialising: reference frame"), True, empty,
+                                 InitStatus.REFERENCE_SET)
+        result = self.initialiser.step(frame)
+        if result.status is InitStatus.TOO_FEW_MATCHES:
+            return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status)
+        if result.status is not InitStatus.INITIALISED:
+            return TrackerOutput(FrameResult(estimate, "ok", result.detail), False, empty, result.status)
+        a, ta = result.reference, self._reference_target
+        kf_a = self.map.add_keyframe(a.stamp_ns, a.T_world_camera, a.track_ids, a.xn,
+                                     ta.corners_world, undistort(ta.corners_px, self.calibration))
+        kf_b = self.map.add_keyframe(stamp_ns, trusted.T_world_camera, tracks.ids, xn,
+                                     trusted.corners_world, undistort(trusted.corners_px, self.calibration))
+        for track_id, point in zip(result.track_ids, result.points_world, strict=True):
+            self.map.add_point(int(track_id), point, kf_a.kf_id)
+        self.initialised = True
+        self._frame_keyframe = kf_b
+        self._frame_pose = trusted.T_world_camera
+        self._kf_points_at_insert = len(result.track_ids)
+        self._frames_since_keyframe = 0
+        log.debug("tracker.initialised", detail=result.detail)
+        self._schedule_bundle()
+        return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
+
+    # ------------------------------------------------------------------ tracking
+    def _predict(self) -> Transform | None:
+        if self._last is None or self.lost:
+            return None
+        return self._last if self._velocity is None else self._last @ self._velocity
+
+    def _update_motion(self, pose: Transform) -> None:
+        self._velocity = None if self._last is None else self._last.inverse() @ pose
+        self._last = pose
+
+    def _anchors(self, target: TargetObservation | None) -> bool:
+        """Is this target pose good enough to hold a keyframe (and so the map) in place?
+        A face seen at a grazing angle fits worse and its pose is uncertain: such a pose
+        is still published, but the map is not bent to it."""
+        if target is None or target.reproj_rms_px > self.options.anchor_max_reproj_px:
+            return False
+        if target.covariance is None:
+            return True
+        std_m = float(np.sqrt(max(np.trace(np.asarray(target.covariance)[:3, :3]), 0.0)))
+        return std_m <= self.options.anchor_max_position_std_m
+
+    def _jumped(self, a: Transform, b: Transform) -> bool:
+        return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
+                or np.degrees(a.rotation_angle_to(b)) > self.options.relocalised_jump_deg)
+
+    def _pnp(self, tracks: Tracks, xn: np.ndarray, prediction: Transform | None
+             ) -> tuple[Transform | None, int, np.ndarray, float]:
+        """Pose from the tracks with map points: (pose or None, inliers, outlier ids, RMS px)."""
+        o = self.options
+        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
+        ids = tracks.ids[has]
+        if len(ids) < o.min_pnp_inliers:
+            return None, len(ids), np.zeros(0, np.int64), 0.0
+        obj = np.array([self.map.points[int(t)] for t in ids])
+        img = xn[has]
+        eye = np.eye(3)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj, img, eye, None, iterationsCount=o.pnp_iterations,
+            reprojectionError=o.pnp_reproj_px / self.fx, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP,
+        )
+        if not ok or inl is None or len(inl) < o.min_pnp_inliers:
+            return None, 0 if inl is None else len(inl), np.zeros(0, np.int64), 0.0
+        mask = np.zeros(len(ids), bool)
+        mask[inl.ravel()] = True
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
+        for _ in range(2):  # refine on the inliers, then re-select them with the refined pose
+            rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], eye, None, rvec, tvec, criteria)
+            T_c_w = Transform.from_rvec_tvec(rvec, tvec)
+            proj, z = project_normalised(T_c_w, obj)
+            err = np.linalg.norm(proj - img, axis=1) * self.fx
+            # Tracks that drifted along an edge or sit on an occlusion boundary err by a few
+            # tenths of a pixel: a robust (MAD) threshold keeps them out of the refinement.
+            spread = 3.0 * 1.4826 * float(np.median(err[mask])) if mask.any() else o.pnp_reproj_px
+            mask = (z > 0) & (err <= min(o.pnp_reproj_px, max(o.pnp_min_reproj_px, spread)))
+            if mask.sum() < o.min_pnp_inliers:
+                return None, int(mask.sum()), ids[~mask], 0.0
+        pose = T_c_w.inverse()
+        drop = ids[~mask]
+        if not np.all(np.isfinite(pose.matrix())):
+            return None, 0, drop, 0.0
+        if prediction is not None and np.linalg.norm(pose.translation - prediction.translation) > o.max_motion_m:
+            return None, int(mask.sum()), drop, 0.0
+        return pose, int(mask.sum()), drop, float(np.sqrt(np.mean(err[mask] ** 2)))
+
+    def _fuse(self, trusted: TargetObservation, tracks: Tracks, xn: np.ndarray, start: Transform) -> Transform:
+        """One pose from the target's corners (fixed world points) and the map points
+        together: the map, anchored on many target frames by bundle adjustment, averages
+        out the corner noise of a single frame."""
+        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
+        obj = np.concatenate([trusted.corners_world, np.array([self.map.points[int(t)] for t in tracks.ids[has]])
+                              .reshape(-1, 3)])
+        img = np.concatenate([undistort(trusted.corners_px, self.calibration), xn[has]])
+        T_c_w = start.inverse()
+        proj, z = project_normalised(T_c_w, obj)
+        keep = (z > 0) & (np.linalg.norm(proj - img, axis=1) * self.fx <= self.options.pnp_reproj_px)
+        keep[: len(trusted.corners_world)] = True
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
+        # (3, 1) vectors: OpenCV 5 leaves (3,) ones untouched without a word
+        rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], np.eye(3), None, T_c_w.rvec().reshape(3, 1),
+                                          T_c_w.translation.reshape(3, 1).copy(), criteria)
+        fused = Transform.from_rvec_tvec(rvec, tvec).inverse()
+        return fused if np.all(np.isfinite(fused.matrix())) and not self._jumped(fused, start) else start
+
+    def _maybe_keyframe(self, stamp_ns: int, pose: Transform, tracks: Tracks, xn: np.ndarray,
+                        trusted: TargetObservation | None, inliers: int, forced: bool) -> bool:
+        o = self.options
+        self._frames_since_keyframe += 1
+        last = self.map.last_keyframe
+        if last is None:
+            forced = True
+        if not forced:
+            with_points = [self.map.points[int(t)] for t in tracks.ids if int(t) in self.map.points]
+            depth = np.median(pose.inverse().apply(np.array(with_points))[:, 2]) if with_points else 1.0
+            baseline = np.linalg.norm(pose.translation - last.T_world_camera.translation) / max(depth, 1e-3)
+            ratio = o.anchored_keyframe_baseline_ratio if trusted is not None else o.keyframe_baseline_ratio
+            needed = (baseline > ratio
+                      or inliers < o.keyframe_tracked_ratio * self._kf_points_at_insert
+                      or inliers < o.keyframe_min_points)
+            if not needed or self._frames_since_keyframe < 2:
+                return False
+        anchor = trusted if self._anchors(trusted) else None
+        target_world = anchor.corners_world if anchor is not None else None
+        target_xn = undistort(anchor.corners_px, self.calibration) if anchor is not None else None
+        kf = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn, target_world, target_xn)
+        self._frame_keyframe = kf
+        self._frames_since_keyframe = 0
+        self._triangulate(kf)
+        self._kf_points_at_insert = sum(1 for t in kf.track_ids if int(t) in self.map.points)
+        self.map.cull(o.max_keyframes, {int(t) for t in tracks.ids})
+        self._schedule_bundle()
+        return True
+
+    def _triangulate(self, kf) -> None:
+        """New points for the keyframe's tracks that have none, each against the first
+        keyframe that saw it (the longest baseline the track offers)."""
+        o = self.options
+        pending: dict[int, list[int]] = {}
+        for i, t in enumerate(kf.track_ids):
+            if int(t) in self.map.points:
+                continue
+            first = self.map.first_observer(int(t))
+            if first is not None and first.kf_id != kf.kf_id:
+                pending.setdefault(first.kf_id, []).append(i)
+        for first_id, rows in pending.items():
+            first = self.map.keyframes[first_id]
+            ids = kf.track_ids[rows]
+            xa = np.array([first.observation(int(t)) for t in ids])
+            result = triangulate(first.T_world_camera, kf.T_world_camera, xa, kf.xn[rows], self.fx,
+                                 o.triangulation_max_reproj_px, o.triangulation_min_parallax_deg)
+            for track_id, point in zip(ids[result.good], result.points_world[result.good], strict=True):
+                self.map.add_point(int(track_id), point, kf.kf_id if kf.anchored else first_id)
+
+    # ------------------------------------------------------------------ bundle adjustment
+    def _schedule_bundle(self) -> None:
+        if self._pending is not None:
+            self._bundle_due = True  # one at a time: the next run starts when this one ends
+            return
+        self._bundle_due = False
+        problem = bundle.build_problem(self.map, self.options.bundle)
+        if problem is None:
+            return
+        if not self.options.bundle.background:
+            self._apply(bundle.solve(problem, self.options.bundle, self.fx))
+            return
+        if self._executor is None:
+            self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="cubeloc-ba")
+        self._pending = self._executor.submit(bundle.solve, problem, self.options.bundle, self.fx)
+
+    def _collect_bundle(self, wait: bool) -> None:
+        if self._pending is None or not (wait or self._pending.done()):
+            return
+        future, self._pending = self._pending, None
+        self._apply(future.result())
+        if self._bundle_due:  # keyframes came while it ran: adjust them too
+            self._schedule_bundle()
+
+    def wait_for_bundle(self) -> None:
+        """Block until the running bundle adjustment (if any) is done and applied. The frame
+        loop never calls this; replays that feed frames faster than a camera do."""
+        self._collect_bundle(wait=True)
+
+    def _drain_bundle(self) -> None:
+        if getattr(self, "_pending", None) is not None:
+            self._pending.result()
+            self._pending = None
+
+    def _apply(self, solution: bundle.BundleSolution) -> None:
+        applied = bundle.apply_solution(self.map, solution)
+        self.bundle_runs = [*self.bundle_runs[-19:], replace(solution, points=np.zeros((0, 3)))]
+        log.debug("tracker.bundle", applied=applied, seconds=round(solution.seconds, 3),
+                  rms_before=round(solution.initial_rms_px, 3), rms_after=round(solution.final_rms_px, 3))

@@ -1,0 +1,47 @@
+"""What the tracker takes in per frame and gives back: frozen, array-valued records."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from positioning.estimator import FrameResult
+from positioning.geometry import Transform
+from positioning.tracking.initialiser import InitStatus
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Feature tracks in one frame: ids persist from frame to frame while a track lives."""
+
+    ids: np.ndarray  # (N,) int64
+    pixels: np.ndarray  # (N, 2) float64, OpenCV pixel convention
+
+    @staticmethod
+    def empty() -> Tracks:
+        return Tracks(np.zeros(0, np.int64), np.zeros((0, 2)))
+
+
+@dataclass(frozen=True)
+class TargetObservation:
+    """A trusted single-frame target pose and the corners it came from."""
+
+    T_world_camera: Transform
+    planes: int
+    tag_ids: tuple[int, ...]
+    reproj_rms_px: float
+    corners_px: np.ndarray  # (M, 2) detected corners
+    corners_world: np.ndarray  # (M, 3) the same corners on the target (world frame)
+    covariance: np.ndarray | None = None  # (6, 6) as in PoseEstimate
+
+
+@dataclass(frozen=True)
+class TrackerOutput:
+    """The frame's result, and what the tracker asks of the feature front end."""
+
+    result: FrameResult
+    want_features: bool  # detect fresh corners in this image and hand them to add_tracks()
+    drop_ids: np.ndarray  # (K,) tracks rejected as outliers: stop following them
+    init_status: InitStatus | None = None  # while initialising: why not yet
+    keyframe: bool = False

@@ -1,0 +1,337 @@
+"""The tracker's core on synthetic geometry (no images): textured-room points projected
+with the exact camera model plus seeded pixel noise, target poses from noisy corners.
+
+``SyntheticTracks`` plays the feature front end: it follows the points that stay in
+view, starts new tracks only when the tracker asks, and drops those it rejects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.camera_info import paper_camera
+from fakes.optics import project
+from positioning.estimator import PoseState
+from positioning.evaluation import absolute_trajectory_error
+from positioning.geometry import Transform, look_at
+from positioning.target import make_cube
+from positioning.tracking.bundle import apply_solution, build_problem, solve
+from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
+from positioning.tracking.map import Map
+from positioning.tracking.options import BundleOptions, InitOptions, TrackerOptions
+from positioning.tracking.tracker import Tracker
+from positioning.tracking.twoview import triangulate, undistort
+from positioning.tracking.types import TargetObservation, Tracks
+from positioning.trajectory_io import StampedPose
+
+CAL = paper_camera()
+CUBE = make_cube()
+SYNC = TrackerOptions(bundle=BundleOptions(background=False))
+
+
+def room_points(seed: int, n: int = 4000) -> np.ndarray:
+    """Points on the walls of a 6 x 6 m room and on clutter inside it."""
+    rng = np.random.default_rng(seed)
+    s, z = rng.uniform(-3, 3, n), rng.uniform(0.0, 2.5, n)
+    wall = rng.integers(4, size=n)
+    x = np.select([wall == 0, wall == 1], [np.full(n, 3.0), np.full(n, -3.0)], s)
+    y = np.select([wall == 2, wall == 3], [np.full(n, 3.0), np.full(n, -3.0)], s)
+    clutter = rng.uniform([-2.5, -2.5, 0.0], [2.5, 2.5, 1.2], size=(n // 4, 3))
+    clutter = clutter[np.linalg.norm(clutter[:, :2], axis=1) > 0.6]  # keep clear of the cube
+    return np.concatenate([np.column_stack([x, y, z]), clutter])
+
+
+class SyntheticTracks:
+    def __init__(self, points: np.ndarray, seed: int, noise_px: float = 0.3, corner_noise_px: float = 0.1,
+                 max_features: int = 300) -> None:
+        self.points = points
+        self.rng = np.random.default_rng(seed)
+        self.noise_px, self.corner_noise_px = noise_px, corner_noise_px
+        self.max_features = max_features
+        self.alive: set[int] = set()
+        self.blank = False  # a textureless wall: nothing to track
+
+    def _view(self, pose: Transform) -> None:
+        pc = pose.inverse().apply(self.points)
+        front = pc[:, 2] > 0.2
+        uv = np.full((len(pc), 2), -1e9)
+        uv[front] = project(pc[front], CAL)
+        self._uv = uv
+        self._inside = front & np.all((uv > 10) & (uv < [CAL.width - 10, CAL.height - 10]), axis=1)
+        if self.blank:
+            self._inside[:] = False
+
+    def tracks(self, pose: Transform) -> Tracks:
+        self._view(pose)
+        self.alive = {i for i in self.alive if self._inside[i]}
+        ids = np.array(sorted(self.alive), dtype=np.int64)
+        return Tracks(ids, self._uv[ids] + self.rng.normal(0, self.noise_px, (len(ids), 2)))
+
+    def detect(self) -> Tracks:
+        candidates = [i for i in np.flatnonzero(self._inside) if i not in self.alive]
+        need = self.max_features - len(self.alive)
+        if need <= 0 or not candidates:
+            return Tracks.empty()
+        chosen = sorted(int(c) for c in self.rng.choice(candidates, min(need, len(candidates)), replace=False))
+        self.alive.update(chosen)
+        ids = np.array(chosen, dtype=np.int64)
+        return Tracks(ids, self._uv[ids] + self.rng.normal(0, self.noise_px, (len(ids), 2)))
+
+    def target(self, pose: Transform) -> TargetObservation | None:
+        """The target pose from noisy corners of the faces turned towards the camera."""
+        T_cw = pose.inverse()
+        seen = []
+        for tag in CUBE.tags:
+            view = pose.translation - tag.center
+            if np.dot(view, tag.normal) / np.linalg.norm(view) > np.cos(np.radians(75)):
+                pc = T_cw.apply(tag.corners)
+                uv = project(pc, CAL) if np.all(pc[:, 2] > 0) else None
+                if uv is not None and np.all((uv > 0) & (uv < [CAL.width, CAL.height])):
+                    seen.append((tag, uv))
+        if len(seen) < 2:
+            return None
+        world = np.concatenate([t.corners for t, _ in seen])
+        px = np.concatenate([u for _, u in seen]) + self.rng.normal(0, self.corner_noise_px, (4 * len(seen), 2))
+        _, rvec, tvec = cv2.solvePnP(world, px, CAL.camera_matrix, CAL.distortion, flags=cv2.SOLVEPNP_EPNP)
+        rvec, tvec = cv2.solvePnPRefineLM(world, px, CAL.camera_matrix, CAL.distortion, rvec, tvec)
+        estimate = Transform.from_rvec_tvec(rvec, tvec).inverse()
+        return TargetObservation(estimate, len(seen), tuple(t.tag_id for t, _ in seen), 0.1, px, world)
+
+
+def trolley_path(n: int = 100, turn_at: float = 0.5) -> list[Transform]:
+    """Constant height, a path of ~2.5 m; looking at the cube first, then turning away."""
+    poses = []
+    for i in range(n):
+        s = i / (n - 1)
+        position = np.array([-1.5 + 2.5 * s, -1.8 + 0.5 * np.sin(3 * s), 0.5])
+        w = min(1.0, s / turn_at)
+        poses.append(look_at(position, w * np.array([2.5, 3.0, 0.6])))
+    return poses
+
+
+def run(tracker: Tracker, source: SyntheticTracks, poses: list[Transform], target_visible, blank=lambda i: False,
+        paced: bool = False):
+    """Feed the frames; ``paced``: give the bundle-adjustment thread the time between frames
+    that a real camera would (the frames here come back to back, far faster)."""
+    outputs = []
+    for i, pose in enumerate(poses):
+        source.blank = blank(i)
+        tracks = source.tracks(pose)
+        observation = source.target(pose) if target_visible(i) else None
+        out = tracker.step(i * 100_000_000, tracks, observation)
+        source.alive.difference_update(int(t) for t in out.drop_ids)
+        if out.want_features:
+            tracker.add_tracks(source.detect())
+        if paced and out.keyframe:
+            tracker.wait_for_bundle()
+        outputs.append(out)
+    return outputs
+
+
+def ate(poses: list[Transform], outputs, start: int = 0) -> float:
+    gt = [StampedPose(i * 100_000_000, p) for i, p in enumerate(poses)]
+    est = [StampedPose(i * 100_000_000, o.result.estimate.T_world_camera)
+           for i, o in enumerate(outputs) if o.result.estimate is not None and i >= start]
+    return absolute_trajectory_error(gt, est).rmse_m
+
+
+# ---------------------------------------------------------------------------- initialiser
+def init_frame(source: SyntheticTracks, pose: Transform, ids: np.ndarray, planes: int = 3,
+               with_pose: bool = True, claimed: Transform | None = None) -> InitFrame:
+    """Observations from ``pose``; the target pose given is ``claimed`` (default: the true one)."""
+    pc = pose.inverse().apply(source.points[ids])
+    xn = pc[:, :2] / pc[:, 2:] + source.rng.normal(0, 0.3 / CAL.fx, (len(ids), 2))
+    return InitFrame(0, (claimed or pose) if with_pose else None, planes, ids, xn)
+
+
+def visible_ids(source: SyntheticTracks, poses: list[Transform]) -> np.ndarray:
+    common = None
+    for pose in poses:
+        source._view(pose)
+        ids = set(np.flatnonzero(source._inside).tolist())
+        common = ids if common is None else common & ids
+    return np.array(sorted(common), dtype=np.int64)[:300]
+
+
+def test_initialiser_refuses_with_a_reason_then_triangulates_metric_points():
+    source = SyntheticTracks(room_points(1), seed=2)
+    a = look_at(np.array([-1.5, -1.8, 0.5]), np.zeros(3))
+    b = look_at(np.array([-1.2, -1.8, 0.5]), np.zeros(3))  # 30 cm to the side
+    rotated = look_at(a.translation, np.array([0.3, 0.2, 0.1]))  # same centre: pure rotation
+    ids = visible_ids(source, [a, b, rotated])
+    init = Initialiser(InitOptions(), CAL.fx)
+    assert init.step(init_frame(source, a, ids, with_pose=False)).status is InitStatus.NO_TARGET_POSE
+    assert init.step(init_frame(source, a, ids, planes=1)).status is InitStatus.TOO_FEW_PLANES
+    assert init.step(init_frame(source, a, ids[:20])).status is InitStatus.TOO_FEW_FEATURES
+    assert init.reference is None
+    assert init.step(init_frame(source, a, ids)).status is InitStatus.REFERENCE_SET
+    # a pure rotation has no parallax, whatever the angle: the reference stays
+    refused = init.step(init_frame(source, rotated, ids))
+    assert refused.status is InitStatus.TOO_LITTLE_PARALLAX and refused.median_parallax_deg < 0.1
+    assert init.reference is not None
+    # wrong target pose for B (the features say otherwise): points fail the checks
+    roll = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(3.0)]))[0]  # about B's optical axis
+    wrong = Transform(b.rotation @ roll, b.translation)
+    assert init.step(init_frame(source, b, ids, claimed=wrong)).status is InitStatus.TOO_FEW_POINTS
+    ok = init.step(init_frame(source, b, ids))
+    assert ok.status is InitStatus.INITIALISED, ok.detail
+    assert len(ok.track_ids) > InitOptions().min_points
+    errors = np.linalg.norm(ok.points_world - source.points[ok.track_ids], axis=1)
+    assert np.median(errors) < 0.03  # metric: 30 cm baseline, points 2-5 m away, 0.3 px noise
+    # the tracks of A are gone: the reference is dropped with its own reason
+    others = np.setdiff1d(np.arange(len(source.points)), ids)[:10]
+    assert init.step(init_frame(source, b, others)).status is InitStatus.TOO_FEW_MATCHES
+    assert init.reference is None
+
+
+def test_triangulation_rejects_points_behind_and_without_parallax():
+    a = Transform.identity()
+    b = Transform(np.eye(3), np.array([0.2, 0.0, 0.0]))
+    points = np.array([[0.0, 0.0, 3.0], [0.1, 0.2, 40.0], [0.0, 0.0, -3.0]])
+    xa = points[:, :2] / points[:, 2:]
+    xb = (points - b.translation)[:, :2] / (points - b.translation)[:, 2:]
+    result = triangulate(a, b, xa, xb, CAL.fx, max_reproj_px=1.0, min_parallax_deg=1.0)
+    assert result.good.tolist() == [True, False, False]  # ok; 0.3 deg parallax; behind
+    assert np.allclose(result.points_world[0], points[0], atol=1e-9)
+
+
+def test_undistort_inverts_the_camera_model():
+    rng = np.random.default_rng(0)
+    xn = rng.uniform(-0.35, 0.35, (50, 2))
+    pixels = project(np.column_stack([xn, np.ones(50)]), CAL)
+    assert np.abs(undistort(pixels, CAL) - xn).max() < 1e-9
+
+
+# ---------------------------------------------------------------------------- bundle adjustment
+def test_bundle_adjustment_pulls_a_perturbed_window_back_onto_the_target():
+    source = SyntheticTracks(room_points(3), seed=4)
+    poses = [look_at(np.array([-1.5 + 0.1 * k, -1.8, 0.5]), np.zeros(3)) for k in range(5)]
+    ids = visible_ids(source, poses)
+    rng = np.random.default_rng(5)
+    world_map = Map()
+    for k, pose in enumerate(poses):
+        pc = pose.inverse().apply(source.points[ids])
+        xn = pc[:, :2] / pc[:, 2:] + rng.normal(0, 0.3 / CAL.fx, (len(ids), 2))
+        observation = source.target(pose)
+        noisy = Transform(pose.rotation, pose.translation + (rng.normal(0, 0.01, 3) if k else 0))
+        world_map.add_keyframe(k, noisy, ids, xn, observation.corners_world,
+                               undistort(observation.corners_px, CAL))
+    for t in ids:
+        world_map.add_point(int(t), source.points[t] + rng.normal(0, 0.03, 3), 0)
+    before = np.median(np.linalg.norm(np.array([world_map.points[int(t)] for t in ids]) - source.points[ids], axis=1))
+    problem = build_problem(world_map, BundleOptions(window_keyframes=5, max_iterations=30))
+    assert problem is not None and problem.free.all()  # anchored: no keyframe needs holding
+    solution = solve(problem, BundleOptions(max_iterations=30), CAL.fx)
+    assert solution.final_rms_px < solution.initial_rms_px / 10
+    assert apply_solution(world_map, solution)
+    after = np.median(np.linalg.norm(np.array([world_map.points[int(t)] for t in ids]) - source.points[ids], axis=1))
+    assert after < before / 3  # depth from a 40 cm baseline at 2-5 m: ~1 cm is the noise floor
+    pose_errors = [np.linalg.norm(kf.T_world_camera.translation - p.translation)
+                   for kf, p in zip(world_map.keyframes.values(), poses, strict=True)]
+    assert max(pose_errors) < 0.003  # metres: held by the target's corners
+    # a solution for a map that has moved since is not applied
+    world_map.correct(Transform.identity())
+    assert not apply_solution(world_map, solution)
+
+
+# ---------------------------------------------------------------------------- tracker
+def test_tracker_initialises_on_the_target_and_keeps_metric_scale_after_it_leaves():
+    poses = trolley_path()
+    tracker = Tracker(CAL, SYNC)
+    outputs = run(tracker, SyntheticTracks(room_points(1), seed=2), poses, lambda i: i < 20)
+    states = [o.result.estimate.state if o.result.estimate else None for o in outputs]
+    assert states[0] is PoseState.TARGET and tracker.initialised
+    first_init = next(i for i, o in enumerate(outputs) if o.init_status is InitStatus.INITIALISED)
+    assert first_init < 20
+    assert all(o.init_status is not None for o in outputs[:first_init])  # each frame says why not yet
+    assert all(s is PoseState.TRACKING for s in states[20:])
+    assert all(np.all(np.isfinite(o.result.estimate.T_world_camera.matrix())) for o in outputs)
+    error = ate(poses, outputs)
+    assert error < 0.006, f"RMS ATE {error * 1000:.2f} mm"
+    last = np.linalg.norm(outputs[-1].result.estimate.T_world_camera.translation - poses[-1].translation)
+    assert last < 0.012  # ~2.8 m of path without the target
+
+
+def test_target_in_view_keeps_the_tracker_within_a_few_millimetres():
+    poses = trolley_path(40, turn_at=1e9)  # always looking at the cube
+    outputs = run(Tracker(CAL, SYNC), SyntheticTracks(room_points(6), seed=7), poses, lambda i: True)
+    states = [o.result.estimate.state for o in outputs]
+    # a frame whose synthetic target pose is missing (a face past 75 degrees) is tracked
+    assert states.count(PoseState.TARGET) >= 0.95 * len(states) and None not in states
+    assert ate(poses, outputs) < 0.003
+
+
+def test_target_return_corrects_drift_visibly_and_lost_frames_publish_nothing():
+    poses = trolley_path(90, turn_at=1e9)
+    tracker = Tracker(CAL, replace(SYNC, relocalised_jump_m=0.002))
+
+    def visible(i: int) -> bool:
+        return i < 15 or i >= 70
+
+    source = SyntheticTracks(room_points(8), seed=9, noise_px=0.8)  # noisier: more drift
+    outputs = run(tracker, source, poses, visible, blank=lambda i: 40 <= i < 45)
+    lost = [i for i, o in enumerate(outputs) if o.result.status == "lost"]
+    assert lost and all(outputs[i].result.estimate is None for i in lost)
+    assert set(lost) <= set(range(40, 75))  # blank, then no map left; a frame or two more
+    # back on the target: the first frame shows the correction
+    assert outputs[70].result.estimate.state is PoseState.RELOCALISED
+    assert all(o.result.estimate.state is PoseState.TARGET for o in outputs[75:])
+    assert ate(poses, outputs, start=70) < 0.003
+    estimates = [o.result.estimate for o in outputs if o.result.estimate is not None]
+    assert all(np.all(np.isfinite(e.T_world_camera.matrix())) for e in estimates)
+
+
+def test_background_bundle_adjustment_and_bounded_memory():
+    poses = trolley_path(80)
+    options = replace(TrackerOptions(), max_keyframes=12)
+    tracker = Tracker(CAL, options)
+    try:
+        outputs = run(tracker, SyntheticTracks(room_points(10), seed=11), poses, lambda i: i < 20, paced=True)
+        tracker.wait_for_bundle()
+    finally:
+        tracker.close()
+    assert len(tracker.map.keyframes) <= 12
+    assert len(tracker.map.points) <= 12 * 300 + 300
+    assert tracker.bundle_runs, "bundle adjustment never ran"
+    assert ate(poses, outputs) < 0.01
+
+
+def test_reset_forgets_the_map():
+    poses = trolley_path(20)
+    tracker = Tracker(CAL, SYNC)
+    run(tracker, SyntheticTracks(room_points(1), seed=2), poses, lambda i: True)
+    assert tracker.initialised and tracker.map.points
+    tracker.reset()
+    assert not tracker.initialised and not tracker.map.points and tracker.last_pose is None
+    out = tracker.step(0, Tracks.empty(), None)
+    assert out.result.estimate is None and out.result.status == "initialising"
+    assert out.init_status is InitStatus.NO_TARGET_POSE
+
+
+@pytest.mark.parametrize("seed", [21])
+def test_pure_rotation_stays_finite_and_ends_lost_or_tracking_without_a_jump(seed):
+    start = look_at(np.array([-1.5, -1.8, 0.5]), np.zeros(3))
+    poses = [look_at(start.translation + np.array([0.01 * i, 0.0, 0.0]), np.zeros(3)) for i in range(20)]
+    centre = poses[-1].translation
+    for i in range(40):  # then spin on the spot, 3 degrees per frame
+        yaw = np.radians(3.0 * (i + 1))
+        d = -centre
+        d = np.array([np.cos(yaw) * d[0] - np.sin(yaw) * d[1], np.sin(yaw) * d[0] + np.cos(yaw) * d[1], d[2]])
+        poses.append(look_at(centre, centre + d))
+    outputs = run(Tracker(CAL, SYNC), SyntheticTracks(room_points(seed), seed=seed), poses, lambda i: i < 20)
+    previous = None
+    for i, o in enumerate(outputs[20:], start=20):
+        e = o.result.estimate
+        if e is None:
+            assert o.result.status == "lost"
+            previous = None
+            continue
+        assert np.all(np.isfinite(e.T_world_camera.matrix()))
+        assert np.linalg.norm(e.T_world_camera.translation - poses[i].translation) < 0.05
+        if previous is not None:
+            assert np.linalg.norm(e.T_world_camera.translation - previous) < 0.05  # no wild jump
+        previous = e.T_world_camera.translation

@@ -1,0 +1,150 @@
+"""The tracker on the synthetic camera's images: KLT, the target detector and the whole
+``TrackingProcessor``, plus ``cubeloc track`` on a written sequence.
+
+Sequences are short and at half resolution (640x512, fx 833 px) to keep the suite fast;
+the full-resolution figures come from ``python -m bench tracker``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib.camera_info import CameraCalibration, paper_camera
+from drivers.sequence import read_mono_png, read_sequence_index
+from fakes.sequence import write_synthetic_sequence
+from positioning.estimator import PoseState
+from positioning.evaluation import absolute_trajectory_error
+from positioning.target import make_cube
+from positioning.tracking.features import KltFrontEnd
+from positioning.tracking.options import BundleOptions
+from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+from positioning.trajectory_io import StampedPose, read_tum
+
+SYNC = ProcessorOptions()
+SYNC = replace(SYNC, tracker=replace(SYNC.tracker, bundle=BundleOptions(background=False)))
+
+
+def half_resolution() -> CameraCalibration:
+    full = paper_camera()
+    k = full.camera_matrix.copy()
+    k[:2] /= 2.0
+    k[0, 2], k[1, 2] = (640 - 1) / 2.0, (512 - 1) / 2.0
+    return CameraCalibration(640, 512, k, full.distortion, "plumb_bob", "half")
+
+
+def load(directory: Path) -> tuple[list[np.ndarray], list[StampedPose]]:
+    entries = read_sequence_index(directory)
+    return [read_mono_png(e.path) for e in entries], read_tum(directory / "groundtruth.tum")
+
+
+@pytest.fixture(scope="module")
+def paper_sequence(tmp_path_factory) -> Path:
+    """The paper's trolley run, first 9 s: the cube in view for ~5 s, then turned away."""
+    out = tmp_path_factory.mktemp("tracking") / "paper"
+    write_synthetic_sequence(out, "paper", seconds=9.0, fps=10.0, seed=3, calibration=half_resolution())
+    return out
+
+
+def run(processor: TrackingProcessor, images, truth, blank=lambda i: False):
+    results = []
+    for i, (image, pose) in enumerate(zip(images, truth, strict=True)):
+        frame = np.full_like(image, 128) if blank(i) else image
+        results.append(processor.process(frame, pose.stamp_ns, i))
+    return results
+
+
+def estimated(results, truth) -> list[StampedPose]:
+    return [StampedPose(p.stamp_ns, r.estimate.T_world_camera) for r, p in zip(results, truth, strict=True)
+            if r.estimate is not None]
+
+
+def test_klt_follows_rendered_texture_consistently(paper_sequence):
+    images, _ = load(paper_sequence)
+    front = KltFrontEnd()
+    front.track(images[0])
+    born = front.detect(images[0])
+    assert len(born.ids) >= 150
+    for image in images[1:6]:
+        tracks = front.track(image)
+    assert len(tracks.ids) > 0.8 * len(born.ids)  # 5 frames of slow motion: most tracks live
+    assert set(tracks.ids) <= set(born.ids)
+
+
+def test_paper_run_initialises_on_the_cube_and_tracks_after_it_leaves(paper_sequence):
+    images, truth = load(paper_sequence)
+    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC)
+    try:
+        results = run(processor, images, truth)
+    finally:
+        processor.close()
+    states = [r.estimate.state if r.estimate else None for r in results]
+    assert states[0] is PoseState.TARGET
+    tracking = [i for i, s in enumerate(states) if s is PoseState.TRACKING]
+    assert tracking and tracking[0] > 30 and len(tracking) >= 25  # after the cube has gone
+    assert all(s is not None for s in states)  # never lost on this run
+    for r in results:
+        m = r.estimate.T_world_camera.matrix()
+        assert np.all(np.isfinite(m)) and abs(np.linalg.det(m[:3, :3]) - 1) < 1e-9
+    ate = absolute_trajectory_error(truth, estimated(results, truth))
+    assert ate.rmse_m < 0.015, f"RMS ATE {ate.rmse_m * 1000:.2f} mm"  # half resolution, 2.7 m of path
+    tracked = absolute_trajectory_error(truth, estimated(results, truth), start_ns=truth[tracking[0]].stamp_ns)
+    assert tracked.max_m < 0.03
+
+
+def test_blank_frames_are_lost_then_relocalised_against_keyframes(paper_sequence):
+    images, truth = load(paper_sequence)
+    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC)
+    try:
+        results = run(processor, images, truth, blank=lambda i: 80 <= i < 82)  # cube out of view there
+    finally:
+        processor.close()
+    assert all(r.estimate is not None for r in results[:80])
+    for i in (80, 81):
+        assert results[i].estimate is None and results[i].status == "lost"
+    first = results[82].estimate
+    assert first is not None and first.state is PoseState.RELOCALISED and first.planes == 0  # by keyframes
+    assert np.linalg.norm(first.T_world_camera.translation - truth[82].T_world_camera.translation) < 0.03
+    assert results[83].estimate is not None and results[83].estimate.state is PoseState.TRACKING
+    for r, pose in zip(results[82:], truth[82:], strict=True):  # lost again is allowed; a wild pose is not
+        if r.estimate is None:
+            assert r.status == "lost"
+        else:
+            assert np.linalg.norm(r.estimate.T_world_camera.translation - pose.T_world_camera.translation) < 0.05
+
+
+def test_track_command_writes_a_tum_trajectory_and_prints_the_error(tmp_path, cli):
+    sequence = tmp_path / "static"
+    write_synthetic_sequence(sequence, "static", seconds=1.5, fps=10.0, seed=5, calibration=half_resolution())
+    out = tmp_path / "out.tum"
+    done = cli("track", "--target", str(sequence / "target.yaml"), "--calib", str(sequence / "camera.yaml"),
+               "--sequence", str(sequence), "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "ATE (no alignment" in done.stdout and "target 15" in done.stdout
+    poses = read_tum(out)
+    assert len(poses) == 15
+    ate = absolute_trajectory_error(read_tum(sequence / "groundtruth.tum"), poses)
+    assert ate.rmse_m < 0.01  # one target pose per frame at half resolution, 2.3 m away
+    missing = cli("track", "--target", str(sequence / "target.yaml"), "--calib", str(sequence / "camera.yaml"),
+                  "--sequence", str(tmp_path / "nowhere"), "--out", str(out))
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr
+    assert len(missing.stderr.strip().splitlines()) == 1 and "nowhere" in missing.stderr
+
+
+def test_processor_refuses_bad_images_and_resets(paper_sequence):
+    images, truth = load(paper_sequence)
+    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC)
+    try:
+        assert processor.process(np.zeros((10, 10), np.uint8), 0, 0).status == "bad_image"
+        assert processor.process(images[0].astype(np.float32), 0, 0).status == "bad_image"
+        run(processor, images[:30], truth[:30])
+        assert processor.tracker.initialised
+        processor.reset()
+        assert not processor.tracker.initialised and len(processor.front_end.ids) == 0
+        again = processor.process(images[30], truth[30].stamp_ns, 30)
+        assert again.estimate is not None and again.estimate.state is PoseState.TARGET
+    finally:
+        processor.close()
