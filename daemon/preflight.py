@@ -49,16 +49,21 @@ def prepare(config: Config) -> Prepared:
 
 
 def make_processor(prepared: Prepared) -> FrameProcessor:
-    """The frame processor the loop calls (positioning/ chooses how poses are made)."""
-    from positioning.single_frame import PoseOptions, TargetPoseProcessor
+    """The frame processor the loop calls (positioning/ chooses how poses are made):
+    the tracker (``positioning.mode = "tracker"``, the default) or the single-frame target
+    pose (``"target"``). Both take the same face and residual limits."""
+    from positioning.target_pose import PoseOptions
 
     options = prepared.config.positioning
-    return TargetPoseProcessor(
-        prepared.target,
-        prepared.calibration,
-        PoseOptions(
-            allow_two_faces=options.allow_two_faces,
-            allow_one_face=options.allow_one_face,
-            max_reproj_rms_px=options.max_reproj_rms_px,
-        ),
+    pose_options = PoseOptions(
+        allow_two_faces=options.allow_two_faces,
+        allow_one_face=options.allow_one_face,
+        max_reproj_rms_px=options.max_reproj_rms_px,
     )
+    if options.mode == "tracker":
+        from positioning.tracking import ProcessorOptions, TrackingProcessor
+
+        return TrackingProcessor(prepared.target, prepared.calibration, ProcessorOptions(pose=pose_options))
+    from positioning.single_frame import TargetPoseProcessor
+
+    return TargetPoseProcessor(prepared.target, prepared.calibration, pose_options)

@@ -26,6 +26,8 @@ def register(subparsers) -> None:
     parser.add_argument("--seconds", type=float, default=20.0, help="length of the run (default 20)")
     parser.add_argument("--fps", type=float, default=10.0, help="camera frame rate (default 10, as in the paper)")
     parser.add_argument("--port", type=int, default=0, help="loopback TCP port of the embedded Zenoh peer (default: a free one)")
+    parser.add_argument("--mode", choices=("tracker", "target"), default="tracker",
+                        help="positioning.mode: the tracker (default) or the single-frame target pose")
     parser.add_argument("--quiet", action="store_true", help="only the summary, not one line per pose")
     parser.set_defaults(func=run)
 
@@ -89,7 +91,8 @@ def run(args) -> int:
         config = Config.model_validate({
             "name": "demo",
             "camera": {"source": source},
-            "positioning": {"calibration": Path(tmp) / "camera.yaml", "target": Path(tmp) / "target.yaml"},
+            "positioning": {"calibration": Path(tmp) / "camera.yaml", "target": Path(tmp) / "target.yaml",
+                            "mode": args.mode},
             "zenoh": {"mode": "peer", "listen": [endpoint], "multicast_scouting": False},
         })
         prepared = prepare(config)
@@ -153,13 +156,16 @@ def summary(received: list[dict], daemon, camera, elapsed_s: float) -> str:
 
     stats = daemon.stats
     errors_mm, angles_deg = [], []
+    by_state: dict[str, list[float]] = {}
     for doc in received:
         truth = camera.ground_truth_at(doc["stamp_ns"]) if camera is not None else None
         if truth is None:
             continue
         errors_mm.append(1000 * float(np.linalg.norm(np.array(doc["position"]) - truth.translation)))
+        by_state.setdefault(doc.get("state", "?"), []).append(errors_mm[-1])
         estimate = Transform.from_quaternion(np.array(doc["position"]), np.array(doc["orientation"]))
         angles_deg.append(math.degrees(estimate.rotation_angle_to(truth)))
+    states = ", ".join(f"{state} {len(v)}" for state, v in sorted(by_state.items()))
     delivered = camera.stats.delivered if camera is not None else 0
     skipped = camera.stats.frame_id_gaps if camera is not None else 0
     latency = stats.latency_percentiles()
@@ -169,8 +175,8 @@ def summary(received: list[dict], daemon, camera, elapsed_s: float) -> str:
         f"  frames: {delivered} rendered by the synthetic camera ({skipped} skipped because rendering fell behind), "
         f"{stats.frames} processed, {daemon.slot.dropped} dropped by the newest-frame queue",
         f"  poses:  {len(received)} received by the subscriber ({stats.poses} published) "
-        f"= {100 * len(received) / max(1, stats.frames):.0f}% of processed frames; "
-        "the single-frame pose needs the cube in view",
+        f"= {100 * len(received) / max(1, stats.frames):.0f}% of processed frames"
+        f"{'; by state: ' + states if states else ''}",
         f"  rate:   {stats.frames / max(elapsed_s, 1e-9):.1f} frames/s processed over {elapsed_s:.1f} s wall time",
     ]
     if latency["p50"] is not None:
@@ -182,6 +188,9 @@ def summary(received: list[dict], daemon, camera, elapsed_s: float) -> str:
             f"median {np.median(e):.2f} mm, max {e.max():.2f} mm over {len(e)} poses"
         )
         lines.append(f"  orientation error: median {np.median(angles_deg):.3f} deg, max {max(angles_deg):.3f} deg")
+        for state, values in sorted(by_state.items()):
+            v = np.array(values)
+            lines.append(f"    {state}: RMS {np.sqrt(np.mean(v ** 2)):.2f} mm over {len(v)} poses")
     else:
         lines.append("  position error: no pose to compare (was the cube ever in view?)")
     return "\n".join(lines)
