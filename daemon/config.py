@@ -65,6 +65,9 @@ class PositioningConfig(Section):
     allow_two_faces: bool = True
     allow_one_face: bool = False
     max_reproj_rms_px: float = Field(1.5, gt=0, le=100)
+    # tracker: initialise on the target, then track (positioning.tracking); target: the
+    # single-frame target pose only (no pose while the cube is out of view)
+    mode: Literal["tracker", "target"] = "tracker"
 
 
 class ZenohConfig(Section):
