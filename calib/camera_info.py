@@ -21,6 +21,10 @@ from cubeloc.atomic import atomic_write_text
 from cubeloc.errors import InputFileError
 
 DISTORTION_LENGTHS = {"plumb_bob": 5, "rational_polynomial": 8}
+# Sanity bounds on a file's numbers: beyond these the file is junk or a unit mistake, and
+# the projection arithmetic downstream overflows or means nothing.
+MAX_FOCAL_PER_PIXEL = 100.0  # fx, fy at most 100 x the larger image side (a ~0.6 deg field)
+MAX_DISTORTION = 1e4  # |coefficient|; real rational_polynomial ones stay well below
 
 
 @dataclass(frozen=True)
@@ -142,6 +146,8 @@ def read_camera_info(path: str | os.PathLike[str]) -> CameraCalibration:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InputFileError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    except RecursionError:  # PyYAML recurses per nesting level: "[[[[..." overflows the stack
+        raise InputFileError(f"{path}: not valid YAML (nested too deeply)") from None
     if not isinstance(doc, dict):
         raise InputFileError(f"{path}: expected a camera_info YAML mapping")
     for key in ("image_width", "image_height"):
@@ -151,8 +157,18 @@ def read_camera_info(path: str | os.PathLike[str]) -> CameraCalibration:
     k = _read_matrix(doc, "camera_matrix", path, (3, 3))
     if not (k[0, 0] > 0 and k[1, 1] > 0 and math.isclose(k[2, 2], 1.0)):
         raise InputFileError(f"{path}: camera_matrix must have fx, fy > 0 and K[2][2] = 1")
+    if k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0:
+        raise InputFileError(f"{path}: camera_matrix must be upper triangular [fx s cx; 0 fy cy; 0 0 1]")
+    width, height = doc["image_width"], doc["image_height"]
+    max_focal = MAX_FOCAL_PER_PIXEL * max(width, height)
+    if max(k[0, 0], k[1, 1]) > max_focal:
+        raise InputFileError(f"{path}: focal length {max(k[0, 0], k[1, 1]):.6g} px is implausible for a "
+                             f"{width}x{height} image (at most {max_focal:g} px)")
+    if not (0 <= k[0, 2] < width and 0 <= k[1, 2] < height):
+        raise InputFileError(f"{path}: principal point ({k[0, 2]:.6g}, {k[1, 2]:.6g}) px lies outside "
+                             f"the {width}x{height} image")
     model = doc.get("distortion_model", "plumb_bob")
-    if model not in DISTORTION_LENGTHS:
+    if not isinstance(model, str) or model not in DISTORTION_LENGTHS:
         known = ", ".join(DISTORTION_LENGTHS)
         raise InputFileError(f"{path}: distortion_model {model!r} is not supported (known: {known})")
     d = _read_matrix(doc, "distortion_coefficients", path, None)
@@ -163,6 +179,9 @@ def read_camera_info(path: str | os.PathLike[str]) -> CameraCalibration:
         raise InputFileError(
             f"{path}: {model} needs {expected} distortion coefficients, the file has {d.size}"
         )
+    if np.abs(d).max() > MAX_DISTORTION:
+        raise InputFileError(f"{path}: distortion coefficient {d[np.abs(d).argmax()]:.6g} is implausible "
+                             f"(|value| at most {MAX_DISTORTION:g})")
     metadata = doc.get("calibration") or {}
     if not isinstance(metadata, dict):
         raise InputFileError(f"{path}: 'calibration' must be a mapping")

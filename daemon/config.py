@@ -171,6 +171,8 @@ def load_config(path: str | os.PathLike[str] | None = None, environ: dict[str, s
             raise ConfigError(f"config {path}: cannot read ({exc})") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"config {path}: not valid TOML ({exc})") from None
+        except RecursionError:  # tomllib recurses per nesting level: "a = [[[[..." overflows
+            raise ConfigError(f"config {path}: not valid TOML (nested too deeply)") from None
     overrides = _env_overrides(environ)
     for _, key_path, value in overrides:
         _set_path(doc, key_path, value)

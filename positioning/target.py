@@ -52,6 +52,10 @@ CUBE_FACES: tuple[tuple[str, tuple[float, float, float], tuple[float, float, flo
 )
 
 PLANARITY_TOLERANCE_M = 1e-4
+# Sanity bounds on a file's numbers (metres): a target smaller than a millimetre or farther
+# than a kilometre from its origin is a unit mistake or junk, and its arithmetic overflows.
+MIN_TAG_SIZE_M = 1e-3
+MAX_COORDINATE_M = 1e3
 SQUARENESS_TOLERANCE = 1e-3  # relative, on edge lengths and diagonals
 
 
@@ -191,7 +195,14 @@ def _validate_square(tag: Tag, where: str) -> None:
     size = edges.mean()
     if size <= 0:
         raise InputFileError(f"{where}: tag {tag.tag_id} has zero size")
+    if size < MIN_TAG_SIZE_M:
+        raise InputFileError(
+            f"{where}: tag {tag.tag_id} is {size * 1000:.3g} mm across, below {MIN_TAG_SIZE_M * 1000:g} mm; "
+            "sizes and corners are in metres"
+        )
     normal = np.cross(c[1] - c[0], c[3] - c[0])
+    if not np.linalg.norm(normal) > 0:  # collinear corners: no plane at all
+        raise InputFileError(f"{where}: tag {tag.tag_id} corners are collinear, not a square")
     normal /= np.linalg.norm(normal)
     off_plane = np.abs((c - c.mean(axis=0)) @ normal).max()
     if off_plane > PLANARITY_TOLERANCE_M:
@@ -210,7 +221,9 @@ def _validate_square(tag: Tag, where: str) -> None:
 
 def _number(value: Any, name: str, where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputFileError(f"{where}: {name} must be a finite number, got {value!r}")
+        raise InputFileError(f"{where}: {name} must be a finite number (metres), got {value!r}")
+    if abs(value) > MAX_COORDINATE_M:
+        raise InputFileError(f"{where}: {name} {value!r} is beyond {MAX_COORDINATE_M:g} m; values are in metres")
     return float(value)
 
 
@@ -285,6 +298,8 @@ def load_target(path: str | os.PathLike[str]) -> Target:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InputFileError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    except RecursionError:  # PyYAML recurses per nesting level: "[[[[..." overflows the stack
+        raise InputFileError(f"{path}: not valid YAML (nested too deeply)") from None
     return parse_target(doc, str(path))
 
 
