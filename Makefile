@@ -52,5 +52,10 @@ bench: install
 demo: install
 	$(BIN)/cubeloc demo
 
+# The daemon for 30 minutes on the pre-rendered synthetic camera at full rate: RSS, threads,
+# fds, frame rate and every pose checked; writes docs/soak.md. Not part of `make test`.
+soak: install
+	nice $(BIN)/python -m bench.soak --minutes 30
+
 clean:
 	rm -rf $(STAMPS) $(VENV) .pytest_cache .ruff_cache

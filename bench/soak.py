@@ -1,0 +1,347 @@
+"""The soak: the daemon on pre-rendered synthetic frames at the camera's full rate, for long.
+
+``make soak`` (``python -m bench.soak --minutes 30``) runs the real ``Daemon`` (capture
+thread, the configured frame processor, real Zenoh on loopback, status thread) in this
+process on a ``fakes.faulty.CyclingCamera``: frames rendered once and played back and
+forth at ``--fps``, so rendering is not the bottleneck. The cable is pulled every
+``--unplug-every`` seconds (the reconnect path must not leak either). A subscriber in a
+second Zenoh session checks every pose against the ground truth.
+
+Sampled every ``--sample`` seconds: the process' RSS (/proc/self/status VmRSS), threads
+(/proc/self/task), open file descriptors (/proc/self/fd), frames processed. Checks, after
+a warm-up (a tenth of the run, at most 3 minutes):
+
+* RSS: the largest sample after the warm-up is < 5 % above the sample at its end;
+* threads and fds: at the end no more than at the end of the warm-up (+1 for Zenoh's
+  lazily started workers);
+* frame rate: the last quarter's processing rate >= 90 % of the first quarter's (no
+  slow-down over time); the rate itself (the processor's speed on a shared machine; the
+  newest-frame slot drops what it cannot take) is reported;
+* poses: none off the ground truth by more than 2 cm or 1 degree, stamps strictly
+  increasing, and the daemon ends with exit code 0.
+
+The result table goes to docs/soak.md (``--no-write`` to skip; the short version in
+tests/test_soak_short.py uses it without writing). Exit code 0 when every check passes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import socket
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+SOAK_DOC = Path(__file__).resolve().parents[1] / "docs" / "soak.md"
+WRONG_POSITION_M = 0.02
+WRONG_ANGLE_DEG = 1.0
+RSS_GROWTH_LIMIT = 0.05
+
+
+@dataclass
+class Sample:
+    t_s: float
+    rss_kb: int
+    threads: int
+    fds: int
+    frames: int
+    poses: int
+
+
+@dataclass
+class SoakResult:
+    seconds: float
+    fps: float
+    warmup_s: float
+    samples: list[Sample]
+    frames_delivered: int = 0
+    poses_received: int = 0
+    wrong_poses: int = 0
+    non_increasing_stamps: int = 0
+    max_position_error_m: float = 0.0
+    max_angle_error_deg: float = 0.0
+    reconnects: int = 0
+    unplugs: int = 0
+    exit_code: int | None = None
+    processor: str = ""
+    checks: dict[str, tuple[bool, str]] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return all(ok for ok, _ in self.checks.values())
+
+
+def _proc_status_kb(key: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    raise RuntimeError(f"/proc/self/status has no {key}")
+
+
+def process_sample(t_s: float, frames: int, poses: int) -> Sample:
+    return Sample(t_s, _proc_status_kb("VmRSS"), len(os.listdir("/proc/self/task")),
+                  len(os.listdir("/proc/self/fd")), frames, poses)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class PoseChecker:
+    """A subscriber's view: every pose compared with the camera's ground truth."""
+
+    def __init__(self, port: int, name: str, camera) -> None:
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        self._camera = camera
+        self._lock = threading.Lock()
+        self.received = self.wrong = self.non_increasing = 0
+        self.max_position_error_m = self.max_angle_error_deg = 0.0
+        self.last_stamp_ns = 0
+        self.session = zenoh.open(conf)
+        self.session.declare_subscriber(f"cubeloc/{name}/pose", self._on_pose)
+
+    def _on_pose(self, sample) -> None:
+        pose = json.loads(sample.payload.to_bytes())
+        truth = self._camera.ground_truth(pose["stamp_ns"])
+        with self._lock:
+            self.received += 1
+            if pose["stamp_ns"] <= self.last_stamp_ns:
+                self.non_increasing += 1
+            self.last_stamp_ns = max(self.last_stamp_ns, pose["stamp_ns"])
+            if truth is None:  # a stamp the camera never delivered: wrong by definition
+                self.wrong += 1
+                return
+            position_error = float(np.linalg.norm(np.array(pose["position"]) - truth.translation))
+            angle_error = quaternion_angle_deg(pose["orientation"], truth.quaternion())
+            self.max_position_error_m = max(self.max_position_error_m, position_error)
+            self.max_angle_error_deg = max(self.max_angle_error_deg, angle_error)
+            if position_error > WRONG_POSITION_M or angle_error > WRONG_ANGLE_DEG:
+                self.wrong += 1
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def quaternion_angle_deg(q1, q2) -> float:
+    dot = abs(float(np.dot(np.asarray(q1, float), np.asarray(q2, float))))
+    return math.degrees(2 * math.acos(min(1.0, dot)))
+
+
+def make_prepared(workdir: Path, port: int, name: str, *, width: int, height: int):
+    from calib.camera_info import paper_camera, write_camera_info
+    from daemon.config import Config
+    from daemon.preflight import prepare
+    from positioning.target import default_cube_yaml
+
+    write_camera_info(workdir / "camera.yaml", paper_camera())
+    (workdir / "target.yaml").write_text(default_cube_yaml())
+    config = Config.model_validate({
+        "name": name,
+        "camera": {"source": "synthetic:static?seconds=1", "width": width, "height": height},
+        "positioning": {"calibration": workdir / "camera.yaml", "target": workdir / "target.yaml"},
+        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"]},
+        "daemon": {"reconnect_initial_s": 0.1, "reconnect_max_s": 0.4},
+        "logging": {"level": "warning"},
+    })
+    return prepare(config)
+
+
+def run_soak(
+    seconds: float,
+    *,
+    fps: float = 10.0,
+    images: int = 24,
+    sample_s: float = 10.0,
+    warmup_s: float | None = None,
+    unplug_every_s: float | None = 300.0,
+    progress=None,
+) -> SoakResult:
+    """Run the daemon for ``seconds`` and check it (see the module docstring)."""
+    from daemon.sdnotify import SystemdNotifier
+    from daemon.service import Daemon
+    from fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
+
+    warmup_s = min(180.0, seconds / 10) if warmup_s is None else warmup_s
+    frames, poses = orbit_frames(images)
+    cycling = CyclingCamera(frames, poses, fps=fps, name="soak")
+    faults = {}
+    if unplug_every_s:
+        every = max(1, int(round(unplug_every_s * fps)))
+        faults = {k: Fault("unplug", seconds=0.3) for k in range(every, int(seconds * fps) + 1, every)}
+    camera = FaultyCamera(cycling, faults)
+    port = free_port()
+    name = "soak"
+    with tempfile.TemporaryDirectory(prefix="cubeloc-soak-") as tmp:
+        height, width = frames[0].shape
+        prepared = make_prepared(Path(tmp), port, name, width=width, height=height)
+        stop = threading.Event()
+        daemon = Daemon(prepared, stop, camera_factory=camera, notifier=SystemdNotifier({}))
+        result_processor = type(daemon.processor).__name__
+        outcome: dict[str, object] = {}
+
+        def run() -> None:
+            try:
+                outcome["code"] = daemon.run()
+            except BaseException as exc:  # reported as a failed check
+                outcome["error"] = exc
+
+        thread = threading.Thread(target=run, name="soak-daemon", daemon=True)
+        checker = None
+        samples: list[Sample] = []
+        result = SoakResult(seconds=seconds, fps=fps, warmup_s=warmup_s, samples=samples,
+                            processor=result_processor)
+        try:
+            thread.start()
+            if not daemon.serving.wait(60):
+                raise RuntimeError("the daemon did not start within 60 s")
+            checker = PoseChecker(port, name, cycling)
+            started = time.monotonic()
+            samples.append(process_sample(0.0, daemon.stats.frames, daemon.stats.poses))
+            next_sample = started + sample_s
+            while (now := time.monotonic()) < started + seconds and thread.is_alive():
+                time.sleep(max(0.0, min(next_sample, started + seconds) - now))
+                if time.monotonic() >= next_sample:
+                    samples.append(process_sample(time.monotonic() - started, daemon.stats.frames, daemon.stats.poses))
+                    next_sample += sample_s
+                    if progress is not None:
+                        progress(samples[-1])
+            if time.monotonic() - started - samples[-1].t_s > sample_s / 2:  # no sliver of a window
+                samples.append(process_sample(time.monotonic() - started, daemon.stats.frames, daemon.stats.poses))
+            result.reconnects = daemon.capture.status().reconnects
+        finally:
+            stop.set()
+            thread.join(10.0)
+            if checker is not None:
+                time.sleep(0.3)  # the last poses in flight
+                checker.close()
+        result.frames_delivered = cycling.stats.delivered
+        result.unplugs = sum(1 for entry in camera.log if entry[:2] == ("fault", "unplug"))
+        result.exit_code = outcome.get("code") if not thread.is_alive() else None
+        if checker is not None:
+            result.poses_received = checker.received
+            result.wrong_poses = checker.wrong
+            result.non_increasing_stamps = checker.non_increasing
+            result.max_position_error_m = checker.max_position_error_m
+            result.max_angle_error_deg = checker.max_angle_error_deg
+        evaluate(result, outcome.get("error"))
+        return result
+
+
+def evaluate(result: SoakResult, error: BaseException | None = None) -> None:
+    samples = result.samples
+    checks = result.checks
+    after = [s for s in samples if s.t_s >= result.warmup_s]
+    checks["daemon ran to the end, exit 0"] = (
+        result.exit_code == 0 and error is None,
+        f"exit code {result.exit_code}" + (f", {type(error).__name__}: {error}" if error else ""))
+    if len(after) < 3:
+        checks["enough samples after warm-up"] = (False, f"{len(after)} samples after {result.warmup_s:.0f} s")
+        return
+    warm, end = after[0], after[-1]
+    peak = max(s.rss_kb for s in after)
+    growth = (peak - warm.rss_kb) / warm.rss_kb
+    checks["RSS growth < 5 %"] = (growth < RSS_GROWTH_LIMIT,
+                                  f"{warm.rss_kb / 1024:.1f} MiB after warm-up, peak {peak / 1024:.1f} MiB, "
+                                  f"end {end.rss_kb / 1024:.1f} MiB ({100 * growth:+.2f} %)")
+    checks["no thread leak"] = (end.threads <= warm.threads + 1, f"{warm.threads} -> {end.threads}")
+    checks["no fd leak"] = (end.fds <= warm.fds + 1, f"{warm.fds} -> {end.fds}")
+    rates = window_rates(after)
+    quarter = max(1, len(rates) // 4)
+    first, last = statistics.fmean(rates[:quarter]), statistics.fmean(rates[-quarter:])
+    checks["frame rate steady"] = (last >= 0.9 * first,
+                                   f"{first:.2f} fps in the first quarter, {last:.2f} in the last, "
+                                   f"min window {min(rates):.2f}, mean {statistics.fmean(rates):.2f} "
+                                   f"(camera {result.fps:g})")
+    checks["no wrong pose"] = (
+        result.poses_received > 0 and result.wrong_poses == 0 and result.non_increasing_stamps == 0,
+        f"{result.poses_received} poses, {result.wrong_poses} off the truth, "
+        f"{result.non_increasing_stamps} stamps not increasing; max error "
+        f"{1000 * result.max_position_error_m:.2f} mm, {result.max_angle_error_deg:.3f} deg")
+    if result.unplugs:
+        checks["recovers from every unplug"] = (result.reconnects >= result.unplugs,
+                                                f"{result.unplugs} unplugs, {result.reconnects} reconnects")
+
+
+def window_rates(samples: list[Sample]) -> list[float]:
+    return [(b.frames - a.frames) / (b.t_s - a.t_s) for a, b in zip(samples, samples[1:], strict=False) if b.t_s > a.t_s]
+
+
+def report_markdown(result: SoakResult, command: str) -> str:
+    from bench.common import machine_line, markdown_table
+
+    samples = result.samples
+    after = [s for s in samples if s.t_s >= result.warmup_s]
+    first, warm, end = samples[0], after[0] if after else samples[0], samples[-1]
+    rows = [
+        ["RSS (MiB)", f"{first.rss_kb / 1024:.1f}", f"{warm.rss_kb / 1024:.1f}", f"{end.rss_kb / 1024:.1f}"],
+        ["threads", first.threads, warm.threads, end.threads],
+        ["open fds", first.fds, warm.fds, end.fds],
+        ["frames processed", first.frames, warm.frames, end.frames],
+        ["poses published", first.poses, warm.poses, end.poses],
+    ]
+    checks = [[name, "pass" if ok else "FAIL", text] for name, (ok, text) in result.checks.items()]
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    return (
+        "# Soak\n\n"
+        "The daemon (capture thread, frame processor, Zenoh publisher, status thread) on the "
+        "pre-rendered synthetic camera (`fakes.faulty.CyclingCamera`) at its full frame rate, "
+        "a subscriber checking every pose against the ground truth, the cable pulled every "
+        "few minutes. Written by `make soak` (`bench/soak.py`); the same checks run for "
+        "about 30 s in `make test` (tests/test_soak_short.py).\n\n"
+        f"Run: {result.processor}, {result.seconds / 60:.1f} min at {result.fps:g} fps "
+        f"({result.frames_delivered} frames from the camera), warm-up {result.warmup_s:.0f} s, "
+        f"{result.unplugs} unplugs, {result.reconnects} reconnects; {stamp} on {machine_line()}.\n\n"
+        + markdown_table(["", "start", "after warm-up", "end"], rows)
+        + "\n"
+        + markdown_table(["check", "result", "figures"], checks)
+        + f"\nReproduce: `{command}`.\n"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=30.0, help="how long to run (default 30)")
+    parser.add_argument("--fps", type=float, default=10.0, help="the camera's frame rate (default 10)")
+    parser.add_argument("--images", type=int, default=24, help="pre-rendered frames to cycle (default 24)")
+    parser.add_argument("--sample", type=float, default=10.0, help="seconds between samples (default 10)")
+    parser.add_argument("--unplug-every", type=float, default=300.0, help="seconds between cable pulls (0: never)")
+    parser.add_argument("--no-write", action="store_true", help="do not write docs/soak.md")
+    args = parser.parse_args(argv)
+    from cubeloc.atomic import atomic_write_text
+    from daemon.logs import configure_logging
+
+    configure_logging("warning", "console")  # the daemon's warnings (camera lost...) only
+
+    def progress(sample: Sample) -> None:
+        print(f"{sample.t_s:7.0f} s  RSS {sample.rss_kb / 1024:7.1f} MiB  threads {sample.threads:3d}  "
+              f"fds {sample.fds:3d}  frames {sample.frames:6d}  poses {sample.poses:6d}", flush=True)
+
+    result = run_soak(args.minutes * 60, fps=args.fps, images=args.images, sample_s=args.sample,
+                      unplug_every_s=args.unplug_every or None, progress=progress)
+    for name, (ok, text) in result.checks.items():
+        print(f"{'pass' if ok else 'FAIL'}  {name}: {text}")
+    if not args.no_write:
+        command = "make soak" if args.minutes == 30 else f"python -m bench.soak --minutes {args.minutes:g}"
+        atomic_write_text(SOAK_DOC, report_markdown(result, command))
+        print(f"wrote {SOAK_DOC}")
+    return 0 if result.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
