@@ -7,6 +7,7 @@ is fast) and on the full frame when the region does not give as many faces as be
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -21,6 +22,7 @@ from positioning.detection import (
     TagDetector,
     refine_corners,
 )
+from positioning.edge_alignment import refine_pose_on_edges
 from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.target import Target
@@ -29,6 +31,7 @@ from positioning.target_pose import (
     Refusal,
     check_tag_scale,
     estimate_target_pose,
+    pose_covariance,
     single_plane_candidates,
     unique_target_detections,
 )
@@ -103,12 +106,13 @@ class TargetPoseProcessor:
 
     def __init__(self, target: Target, calibration: CameraCalibration, options: PoseOptions | None = None,
                  detector_options: DetectorOptions | None = None, edge_refinement: bool = True,
-                 full_frame_decimate: float = 3.0) -> None:
+                 full_frame_decimate: float = 3.0, edge_alignment: bool = True) -> None:
         self.target = target
         self.calibration = calibration
         self.options = options or PoseOptions()
         self._detector = TagDetector(target.family, detector_options)
         self.edge_refinement = edge_refinement
+        self.edge_alignment = edge_alignment  # align the pose to every cell edge (edge_alignment.py)
         self.full_frame_decimate = full_frame_decimate
         self._last_pose: Transform | None = None
         self._last_tag_count = 0
@@ -255,8 +259,12 @@ class TargetPoseProcessor:
     def _process(self, image: np.ndarray, seq: int) -> FrameResult:
         self._suspects = set()
         found = self._search(image)
-        detections = self._refine(image, found)
-        outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._last_pose)
+        # In the steady state the edge alignment replaces the corner refinement: the
+        # library's corners only need to bring the pose within a third of a cell.
+        steady = self.edge_alignment and self.last_search == "predicted"
+        detections = found if steady else self._refine(image, found)
+        outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._last_pose,
+                                       with_covariance=not self.edge_alignment)
         if outcome.pose is not None and (self.last_search == "full" or self._suspects):
             # Search again for the tags the pose says are in view but it did not use
             # (not found, or left out as a bad quad); keep what improves the pose.
@@ -285,6 +293,10 @@ class TargetPoseProcessor:
                 detail = f"{detail}; {self._scale_message}" if self._scale_message else detail
             return FrameResult(None, outcome.refusal.value, detail, seen)
         pose = outcome.pose
+        if self.edge_alignment:
+            pose = refine_pose_on_edges(image, pose, self.target, self.calibration)
+            if pose.covariance is None:  # the alignment failed: the corners' pose stands
+                pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
         self._last_pose = pose.T_world_camera
         self._last_tag_count = len(pose.tag_ids)
         if not self._scale_checked and pose.planes >= 3:

@@ -179,9 +179,20 @@ def _covariance(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, re
     solver's (rvec, tvec) is then carried to (position, world rotation) numerically.
     """
     _, jacobian = cv2.projectPoints(points_world, rvec, tvec, calibration.camera_matrix, calibration.distortion)
-    jacobian = jacobian[:, :6]  # d(pixels)/d(rvec, tvec)
+    return covariance_from_jacobian(jacobian[:, :6], residuals, rvec, tvec)
+
+
+def pose_covariance(pose: TargetPose, calibration: CameraCalibration) -> np.ndarray:
+    """The 6x6 covariance of a corners' pose (as ``estimate_target_pose`` attaches it)."""
+    return _covariance(pose.points_world, pose.rvec, pose.tvec, pose.residuals_px, calibration)
+
+
+def covariance_from_jacobian(jacobian: np.ndarray, residuals: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+                             min_sigma_px: float = MIN_CORNER_SIGMA_PX) -> np.ndarray:
+    """6x6 covariance of T_world_camera (ROS order) from any measurement Jacobian
+    (M, 6) with respect to the solver's (rvec, tvec), and the M residuals (pixels)."""
     dof = max(residuals.size - 6, 1)
-    sigma2 = max(float(np.sum(residuals**2)) / dof, MIN_CORNER_SIGMA_PX**2)
+    sigma2 = max(float(np.sum(residuals**2)) / dof, min_sigma_px**2)
     cov_solver = sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
     reference = cv2.Rodrigues(rvec)[0].T  # R_world_camera at the solution
     x0 = np.concatenate([rvec, tvec])
@@ -279,15 +290,18 @@ def estimate_target_pose(
     calibration: CameraCalibration,
     options: PoseOptions | None = None,
     previous: Transform | None = None,
+    *,
+    with_covariance: bool = True,
 ) -> PoseOutcome:
     """The camera pose from the detections of ``target``'s tags (others are ignored).
 
     ``previous`` (T_world_camera of an earlier frame) is used only to choose between the
     two poses of a single face when ``options.allow_one_face`` is set. The returned pose
-    carries its 6x6 covariance (computed once, for the pose returned).
+    carries its 6x6 covariance (computed once, for the pose returned), unless
+    ``with_covariance`` is False (a caller that refines the pose further computes its own).
     """
     outcome = _estimate(detections, target, calibration, options, previous)
-    if outcome.pose is None:
+    if outcome.pose is None or not with_covariance:
         return outcome
     pose = outcome.pose
     covariance = _covariance(pose.points_world, pose.rvec, pose.tvec, pose.residuals_px, calibration)
