@@ -72,16 +72,26 @@ class ZenohPublisher:
     def publish_status(self, payload: bytes) -> None:
         self._status.put(payload)
 
+    # Replies go out on the concrete key, whatever the selector (``cubeloc/*/calibration``),
+    # so the caller learns which daemon answered. Payload, parameters and attachment of a
+    # query are ignored: nothing a peer sends can change what these do.
     def _on_calibration(self, query: zenoh.Query) -> None:
-        query.reply(query.key_expr, self._calibration_yaml.encode("utf-8"),
+        query.reply(f"{self.prefix}/calibration", self._calibration_yaml.encode("utf-8"),
                     encoding=self._zenoh.Encoding.TEXT_YAML)
 
     def _on_reset(self, query: zenoh.Query) -> None:
+        key = f"{self.prefix}/reset"
+        if str(query.key_expr) != key:
+            # A wildcard selector (``cubeloc/**`` from a monitoring tool) reaches this
+            # queryable too; resetting every daemon it matches would be a nasty surprise.
+            query.reply(key, json.dumps({"reset": False, "reason": f"ask {key} exactly"}).encode("utf-8"),
+                        encoding=self._zenoh.Encoding.APPLICATION_JSON)
+            return
         # Runs on a Zenoh thread: the processing loop performs the reset (it owns the
         # processor); this waits briefly for it so the caller learns whether it happened.
         done = self._request_reset()
         log.info("reset requested over zenoh", done=done)
-        query.reply(query.key_expr, json.dumps({"reset": done}).encode("utf-8"),
+        query.reply(key, json.dumps({"reset": done}).encode("utf-8"),
                     encoding=self._zenoh.Encoding.APPLICATION_JSON)
 
     def close(self) -> None:
