@@ -6,15 +6,26 @@ deadlines, cut short by shutdown), opens a fresh camera with the same settings a
 on; its state shows on ``status`` and in the logs. A finite source (replay, synthetic)
 that ends sets ``ended``. Anything that is not a camera error is a bug: it is kept in
 ``failure`` and stops the daemon.
+
+Every frame is checked at this boundary before the processor can see it (a driver bug, a
+misconfigured camera, a clock step): a frame that is not Mono8 (H, W) uint8, of another
+size than the camera settings, or stamped at or before the previous frame, is dropped;
+a frame-id jump is counted. Each kind is counted (``faults``, on ``status``) and logged
+(the first at once, then at most every ``FAULT_LOG_PERIOD_S`` with the count). Stamps
+that stay behind for ``STAMP_RESTART_FRAMES`` frames in a row are a host clock stepped
+back (NTP): the new timeline is accepted and the frame is marked ``restart`` so the
+processor starts afresh, rather than dropping frames until the clock catches up.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import threading
 import time
 from collections.abc import Callable
 
+import numpy as np
 import structlog
 
 from cubeloc.errors import CubelocError
@@ -25,6 +36,7 @@ from drivers.base import (
     CameraError,
     CameraSettings,
     EndOfStream,
+    Frame,
     FrameTimeout,
 )
 from drivers.registry import make_camera
@@ -34,6 +46,9 @@ log = structlog.get_logger()
 # next_frame is called with at most this timeout so that a shutdown is seen quickly even
 # when the configured frame timeout is long.
 POLL_S = 0.25
+FAULT_LOG_PERIOD_S = 10.0
+STAMP_RESTART_FRAMES = 3
+CAMERA_COUNTERS = ("incomplete", "bad_timestamp", "frame_id_gaps", "timeouts")
 
 
 class CaptureThread(threading.Thread):
@@ -65,6 +80,15 @@ class CaptureThread(threading.Thread):
         self._camera: Camera | None = None
         self._dropped_before = 0  # driver-dropped frames of cameras already closed
         self._next_seq = 0
+        self._expected_size = (settings.width, settings.height)
+        self._last_stamp_ns: int | None = None  # the last frame passed on (across reconnects)
+        self._stamp_back_streak = 0
+        self._last_frame_id: int | None = None  # within one stream
+        self._restart_next = False
+        self._faults: collections.Counter = collections.Counter()
+        self._fault_logged_at: dict[str, float] = {}
+        self._camera_counts_before: collections.Counter = collections.Counter()  # closed cameras
+        self.last_fault: tuple[float, str] | None = None  # (monotonic time, what) of the last dropped frame
         self.heartbeat = time.monotonic()  # last time the loop was seen alive
         self.ended = threading.Event()
         self.streaming = threading.Event()
@@ -75,8 +99,32 @@ class CaptureThread(threading.Thread):
         with self._lock:
             status = self._status
             camera = self._camera
-        dropped = self._dropped_before + (camera.stats.dropped if camera is not None else 0)
+            dropped = self._dropped_before
+        dropped += camera.stats.dropped if camera is not None else 0
         return CameraStatus(**{**status.__dict__, "dropped": dropped})
+
+    def faults(self) -> dict[str, int]:
+        """Counts of what went wrong at the camera boundary, for ``status``: frames dropped
+        here (bad_format, wrong_size, stamp_not_increasing), frame-id jumps, frame
+        timeouts, clock restarts, and the camera backends' own counters (summed over
+        reconnects)."""
+        with self._lock:
+            counts = collections.Counter(self._faults)
+            counts.update(self._camera_counts_before)
+            camera = self._camera
+        if camera is not None:
+            counts.update({f"camera_{k}": getattr(camera.stats, k) for k in CAMERA_COUNTERS})
+        return {k: v for k, v in sorted(counts.items()) if v}
+
+    def _count_fault(self, kind: str, message: str, **fields: object) -> None:
+        with self._lock:
+            self._faults[kind] += 1
+            count = self._faults[kind]
+        now = time.monotonic()
+        self.last_fault = (now, f"{message} ({', '.join(f'{k} {v}' for k, v in fields.items())})")
+        if now - self._fault_logged_at.get(kind, -FAULT_LOG_PERIOD_S) >= FAULT_LOG_PERIOD_S:
+            self._fault_logged_at[kind] = now
+            log.warning(message, source=self.source, fault=kind, count=count, **fields)
 
     def _set_state(self, state: str, detail: str = "", **fields: object) -> None:
         with self._lock:
@@ -165,6 +213,8 @@ class CaptureThread(threading.Thread):
                 if time.monotonic() - waiting_since < self._frame_timeout_s:
                     continue
                 timeouts_in_row += 1
+                with self._lock:
+                    self._faults["frame_timeout"] += 1
                 waiting_since = time.monotonic()
                 log.warning("no frame within the timeout", source=self.source, timeout_s=self._frame_timeout_s, in_a_row=timeouts_in_row)
                 if timeouts_in_row >= self._timeout_streak:
@@ -176,17 +226,56 @@ class CaptureThread(threading.Thread):
                 return f"{type(exc).__name__}: {exc}"
             timeouts_in_row = 0
             waiting_since = time.monotonic()
+            if not self._accept(frame):
+                continue
             seq = self._next_seq
             self._next_seq += 1
-            self._slot.put(CapturedFrame(frame, seq, time.monotonic_ns()))
+            restart, self._restart_next = self._restart_next, False
+            self._slot.put(CapturedFrame(frame, seq, time.monotonic_ns(), restart=restart))
         return "stopped"
+
+    def _accept(self, frame: Frame) -> bool:
+        """Check one frame from the driver; False: dropped (counted and logged)."""
+        # Every frame received counts for the ids, good or bad (a bad frame is not a lost one).
+        last_id, self._last_frame_id = self._last_frame_id, frame.frame_id
+        if last_id is not None and frame.frame_id != last_id + 1:
+            self._count_fault("frame_id_jump", "frame id jumped", previous=last_id, frame_id=frame.frame_id)
+        image = frame.image
+        if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
+            shape = getattr(image, "shape", None)
+            self._count_fault("bad_format", "frame dropped: not Mono8", shape=str(shape),
+                              dtype=str(getattr(image, "dtype", type(image).__name__)), frame_id=frame.frame_id)
+            return False
+        height, width = image.shape
+        if (width, height) != self._expected_size:
+            self._count_fault("wrong_size", "frame dropped: size differs from the camera settings",
+                              size=f"{width}x{height}", expected=f"{self._expected_size[0]}x{self._expected_size[1]}",
+                              frame_id=frame.frame_id)
+            return False
+        last = self._last_stamp_ns
+        if last is not None and frame.stamp_ns <= last:
+            self._stamp_back_streak += 1
+            if self._stamp_back_streak < STAMP_RESTART_FRAMES:
+                self._count_fault("stamp_not_increasing", "frame dropped: timestamp not after the previous frame's",
+                                  stamp_ns=frame.stamp_ns, previous_ns=last, frame_id=frame.frame_id)
+                return False
+            # Behind for several frames in a row: the clock stepped back; start a new timeline.
+            self._count_fault("clock_restart", "timestamps went back for several frames: new timeline, processor reset",
+                              stamp_ns=frame.stamp_ns, previous_ns=last)
+            self._restart_next = True
+        self._stamp_back_streak = 0
+        self._last_stamp_ns = frame.stamp_ns
+        return True
 
     def _close_camera(self) -> None:
         with self._lock:
             camera, self._camera = self._camera, None
+            if camera is not None:  # its counters move to the totals in the same step
+                self._dropped_before += camera.stats.dropped
+                self._camera_counts_before.update({f"camera_{k}": getattr(camera.stats, k) for k in CAMERA_COUNTERS})
         if camera is None:
             return
-        self._dropped_before += camera.stats.dropped
+        self._last_frame_id = None  # a new stream numbers its frames afresh
         with contextlib.suppress(CubelocError):
             camera.stop()
         with contextlib.suppress(CubelocError):

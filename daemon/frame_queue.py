@@ -7,6 +7,7 @@ image, and a slow stage can never build up a backlog (and with it, latency).
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from dataclasses import dataclass
 
@@ -20,6 +21,7 @@ class CapturedFrame:
     frame: Frame
     seq: int  # the daemon's frame counter, continuous across camera reconnects
     received_monotonic_ns: int  # when the driver handed it over (time.monotonic_ns)
+    restart: bool = False  # a new timeline starts here (clock stepped back): reset the processor
 
 
 class LatestFrameSlot:
@@ -35,6 +37,8 @@ class LatestFrameSlot:
         with self._condition:
             if self._item is not None:
                 self._dropped += 1
+                if self._item.restart and not item.restart:  # the reset must not be lost with it
+                    item = dataclasses.replace(item, restart=True)
             self._item = item
             self._condition.notify()
 

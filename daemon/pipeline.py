@@ -110,6 +110,11 @@ class ProcessingLoop:
     def _process(self, item: CapturedFrame) -> None:
         frame = item.frame
         bound = log.bind(seq=item.seq)
+        if item.restart:
+            # The capture thread saw the clock step back: nothing before this frame may
+            # constrain what comes after it (a tracker's motion model, its keyframes).
+            self._processor.reset()
+            bound.warning("processor reset: the frame timeline restarted")
         height, width = frame.image.shape[:2]
         if (width, height) != self._expected_size:
             result = FrameResult(None, "calibration_mismatch",

@@ -32,6 +32,7 @@ from positioning.estimator import FrameProcessor
 log = structlog.get_logger()
 
 JOIN_TIMEOUT_S = 1.0
+BAD_FRAMES_WINDOW_S = 1.0  # status says "bad_frames" while frames are dropped and none processed
 
 
 class Daemon:
@@ -112,8 +113,12 @@ class Daemon:
     def report(self) -> StatusReport:
         camera = self.capture.status()
         stats = self.stats
+        last_fault = self.capture.last_fault
         if camera.state != "streaming":
             state, detail = camera.state, camera.detail
+        elif last_fault is not None and self._only_bad_frames(last_fault[0]):
+            # Streaming, but every recent frame was dropped at the camera boundary.
+            state, detail = "bad_frames", last_fault[1]
         elif stats.frames == 0:
             state, detail = "starting", "waiting for the first frame"
         else:
@@ -133,8 +138,14 @@ class Daemon:
             uptime_s=time.monotonic() - self._started,
             version=__version__,
             tags_seen=stats.last_tags,
-            extra={"processor_errors": stats.processor_errors},
+            extra={"processor_errors": stats.processor_errors, "faults": self.capture.faults()},
         )
+
+    def _only_bad_frames(self, last_fault_at: float) -> bool:
+        """Frames dropped at the camera boundary lately, and none processed since a while."""
+        now = time.monotonic()
+        last_frame = self.stats.last_frame_monotonic
+        return now - last_fault_at < BAD_FRAMES_WINDOW_S and (last_frame is None or now - last_frame > BAD_FRAMES_WINDOW_S)
 
     def _publish_status(self) -> StatusReport:
         report = self.report()

@@ -40,13 +40,14 @@ from drivers.base import (
 from positioning.geometry import Transform
 
 FAULT_KINDS = (
-    "timeout",  # `count` FrameTimeouts in a row, each after the caller's full timeout
+    "timeout",  # no frame for `seconds`: every call in that time waits its timeout, FrameTimeout
     "unplug",  # StreamBroken now, then opens fail (CameraNotFound) for `seconds`
     "incomplete",  # the frame with rows from `fraction` of the height down zeroed
     "frame_id_jump",  # the camera's frame counter jumps forward by `count` (and stays there)
     "stamp_back",  # this frame's timestamps `seconds` before the previous frame's
-    "wrong_size",  # the frame cropped to half its width and height
-    "wrong_format",  # the frame as 16-bit (`format="mono16"`) or 3-channel (`"rgb8"`)
+    "wrong_size",  # `count` frames cropped to half their width and height
+    "wrong_format",  # `count` frames as 16-bit (`format="mono16"`) or 3-channel (`"rgb8"`)
+    "clock_step",  # from now on every timestamp `seconds` earlier (a host clock stepped back)
 )
 
 
@@ -170,9 +171,13 @@ class FaultyCamera(CameraBase):
         self.faults = dict(faults or {})
         self.log: list[tuple] = []  # ("fault", kind, frame number) / ("open",) / ("frame", stamp, id)
         self.frames = 0  # frames pulled from the inner camera
-        self._pending_timeouts = 0
+        self._silent_until = 0.0
         self._unplugged_until = 0.0
         self._id_offset = 0
+        self._stamp_shift_ns = 0  # clock steps so far
+        self._repeat: tuple[Fault, int] | None = None  # a fault on the next frames too
+        self.bad_stamps: set[int] = set()  # stamps of frames given a wrong timestamp
+        self.shifts_ns: list[int] = [0]  # the total clock shift of each timeline (inner stamp - delivered)
         self._last_device_ns = 0
         self._last_stamp_ns = 0
         self.opens = 0
@@ -212,17 +217,24 @@ class FaultyCamera(CameraBase):
         self.inner.close()
 
     def next_frame(self, timeout_s: float) -> Frame:
-        if self._pending_timeouts > 0:
-            self._pending_timeouts -= 1
-            time.sleep(timeout_s)
+        if time.monotonic() < self._silent_until:
+            time.sleep(max(0.0, min(timeout_s, self._silent_until - time.monotonic())))
             raise FrameTimeout(f"{self.inner.info.device_id}: no frame within {timeout_s:g} s (injected)")
         frame = self.inner.next_frame(timeout_s)
         self.frames += 1
         fault = self.faults.pop(self.frames, None)
         if fault is not None:
             self.log.append(("fault", fault.kind, self.frames))
+            if fault.kind in ("wrong_size", "wrong_format") and fault.count > 1:
+                self._repeat = (fault, fault.count - 1)
+        elif self._repeat is not None:
+            fault, left = self._repeat
+            self._repeat = (fault, left - 1) if left > 1 else None
+        if fault is not None:
             frame = self._inject(fault, frame, timeout_s)
-        frame = dataclasses.replace(frame, frame_id=frame.frame_id + self._id_offset)
+        frame = dataclasses.replace(frame, frame_id=frame.frame_id + self._id_offset,
+                                    device_timestamp_ns=frame.device_timestamp_ns - self._stamp_shift_ns,
+                                    stamp_ns=frame.stamp_ns - self._stamp_shift_ns)
         self._last_device_ns = frame.device_timestamp_ns
         self._last_stamp_ns = frame.stamp_ns
         self.log.append(("frame", frame.stamp_ns, frame.frame_id))
@@ -231,8 +243,8 @@ class FaultyCamera(CameraBase):
     def _inject(self, fault: Fault, frame: Frame, timeout_s: float) -> Frame:
         kind = fault.kind
         if kind == "timeout":
-            self._pending_timeouts = fault.count - 1
-            time.sleep(timeout_s)
+            self._silent_until = time.monotonic() + fault.seconds
+            time.sleep(min(timeout_s, fault.seconds))
             raise FrameTimeout(f"{self.inner.info.device_id}: no frame within {timeout_s:g} s (injected)")
         if kind == "unplug":
             self._unplugged_until = time.monotonic() + fault.seconds
@@ -244,10 +256,15 @@ class FaultyCamera(CameraBase):
         if kind == "frame_id_jump":
             self._id_offset += fault.count
             return frame
-        if kind == "stamp_back":
-            back_ns = int(fault.seconds * 1e9)
+        if kind == "stamp_back":  # (the clock-step shift is subtracted again by the caller)
+            back_ns = int(fault.seconds * 1e9) - self._stamp_shift_ns
+            self.bad_stamps.add(self._last_stamp_ns - back_ns - self._stamp_shift_ns)
             return dataclasses.replace(frame, device_timestamp_ns=self._last_device_ns - back_ns,
                                        stamp_ns=self._last_stamp_ns - back_ns)
+        if kind == "clock_step":
+            self._stamp_shift_ns += int(fault.seconds * 1e9)
+            self.shifts_ns.append(self._stamp_shift_ns)
+            return frame
         if kind == "wrong_size":
             h, w = frame.image.shape[:2]
             return dataclasses.replace(frame, image=np.ascontiguousarray(frame.image[: h // 2, : w // 2]))
@@ -278,9 +295,10 @@ def render_orbit_frames(count: int, *, arc_deg: float = 6.0, radius_m: float = 1
 
 
 @functools.lru_cache(maxsize=4)
-def orbit_frames(count: int, seed: int = 0) -> tuple[tuple[np.ndarray, ...], tuple[Transform, ...]]:
-    """``render_orbit_frames(count)``, rendered once per process (tests share them)."""
-    images, poses = render_orbit_frames(count, seed=seed)
+def orbit_frames(count: int, seed: int = 0, room: bool = True) -> tuple[tuple[np.ndarray, ...], tuple[Transform, ...]]:
+    """``render_orbit_frames(count)``, rendered once per process (tests share them).
+    ``room=False`` (a plain background) skips building the room, which takes seconds."""
+    images, poses = render_orbit_frames(count, seed=seed, room=room)
     for image in images:
         image.setflags(write=False)  # shared: nobody may draw on them
     return tuple(images), tuple(poses)
