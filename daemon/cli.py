@@ -30,6 +30,7 @@ VERB_MODULES = (
     "daemon.commands.track",
     "daemon.commands.generate",
     "daemon.commands.calibrate",
+    "daemon.commands.calibrate_target",
 )
 
 
