@@ -18,6 +18,7 @@ Pure computation: images and a nominal Target in, a ``TargetCalibration`` out.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
@@ -38,6 +39,7 @@ MIN_TAG_VIEWS = 2  # a tag needs this many usable views to be placed
 INITIAL_POSE_OPTIONS = PoseOptions(max_reproj_rms_px=50.0, max_tag_angle_deg=80.0, min_oblique_edge_px=15.0)
 OUTLIER_FACTOR = 5.0  # a tag view whose RMS exceeds this times the median is left out
 MIN_OUTLIER_PX = 0.5
+EDGE_ITERATIONS = 4
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,7 @@ class ViewObservation:
 
     name: str
     detections: tuple[TagDetection, ...]
+    image: np.ndarray | None = None  # kept for the edge refinement
 
 
 @dataclass(frozen=True)
@@ -70,11 +73,15 @@ class TargetCalibration:
     rms_px: float  # corner residual RMS after the adjustment
     nominal_rms_px: float  # the same observations against the nominal target (poses refitted)
     per_view_rms_px: tuple[tuple[str, float], ...] = field(default=())
+    edge_profiles: int = 0  # edge profiles of the final edge iteration (0: corners only)
+    edge_rms_px: float = float("nan")
 
     def report(self) -> str:
         lines = [
             f"views used: {self.views_used}, skipped: {len(self.views_skipped)}",
             f"corner residual RMS: {self.rms_px:.3f} px (nominal target: {self.nominal_rms_px:.3f} px)",
+            *([f"edge refinement: {self.edge_profiles} edge profiles, RMS {self.edge_rms_px:.3f} px"]
+              if self.edge_profiles else []),
             "tag  views  shift from nominal (x, y, z) mm   |shift| mm  rotation deg   1-sigma: shift mm, rotation deg   RMS px",
         ]
         for t in self.tags:
@@ -111,7 +118,7 @@ def observe(images: Iterable[tuple[str, np.ndarray]], target: Target, calibratio
         if len(refined) < 2:
             skipped.append((name, f"{len(refined)} tag(s) of the target found, 2 needed"))
             continue
-        views.append(ViewObservation(name, tuple(refined)))
+        views.append(ViewObservation(name, tuple(refined), image))
     return views, skipped
 
 
@@ -135,8 +142,10 @@ def _connected_tags(views: list[ViewObservation], first: int) -> set[int]:
 
 def calibrate_target(views: list[ViewObservation], nominal: Target, calibration: CameraCalibration,
                      skipped: list[tuple[str, str]] | None = None,
-                     progress: Callable[[str], None] | None = None) -> TargetCalibration:
-    """Bundle adjustment of the tags' placements (first tag fixed) and the camera poses."""
+                     progress: Callable[[str], None] | None = None, edge_iterations: int = EDGE_ITERATIONS,
+                     ) -> TargetCalibration:
+    """Bundle adjustment of the tags' placements (first tag fixed) and the camera poses:
+    on the refined corners, then (when the views keep their images) on every cell edge."""
     skipped = list(skipped or [])
     first = nominal.tags[0].tag_id
     counts: dict[int, int] = {}
@@ -163,7 +172,7 @@ def calibrate_target(views: list[ViewObservation], nominal: Target, calibration:
             skipped.append((view.name, f"no initial pose ({outcome.detail})"))
             continue
         poses.append(np.concatenate([outcome.pose.rvec, outcome.pose.tvec]))
-        used.append(ViewObservation(view.name, tuple(detections)))
+        used.append(ViewObservation(view.name, tuple(detections), view.image))
     if len(used) < MIN_VIEWS:
         raise InputFileError(
             f"only {len(used)} usable image(s) showing two tags or more with a pose; "
@@ -184,7 +193,110 @@ def calibrate_target(views: list[ViewObservation], nominal: Target, calibration:
     if np.any(per_obs > limit):
         problem.keep = per_obs <= limit
         solution = problem.solve(solution)
-    return problem.result(solution, nominal_rms, skipped, counts)
+    result = problem.result(solution, nominal_rms, skipped, counts)
+    if edge_iterations > 0 and all(v.image is not None for v in used):
+        result = _refine_on_edges(used, problem, solution, result, calibration, edge_iterations, progress)
+    return result
+
+
+def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndarray, corners_result: TargetCalibration,
+                     calibration: CameraCalibration, iterations: int,
+                     progress: Callable[[str], None] | None) -> TargetCalibration:
+    """Gauss-Newton on every cell edge of every tag in every view (edge_alignment's
+    measurement), jointly over the free tags' placements and the view poses, from the
+    corners' solution. The corners fix where the tags are to ~0.05 mm; the edges, many
+    more and measured without fitting lines, take that further."""
+    from positioning.edge_alignment import MIN_PROFILES, _measure, _rotation_of, edge_model
+
+    nominal, first, free = problem.nominal, problem.first, problem.free
+    solved = (first, *free)
+    tag_rotation = {t: np.eye(3) for t in solved}
+    tag_centre = {t: problem.centres[t].copy() for t in solved}
+    for t in free:
+        p = x[6 * problem.tag_slot[t]: 6 * problem.tag_slot[t] + 6]
+        tag_rotation[t] = _rotation_of(p[:3])
+        tag_centre[t] = problem.centres[t] + p[3:]
+    view_rotation, view_translation = [], []
+    for v in range(len(views)):
+        pose = x[problem.offset + 6 * v: problem.offset + 6 * v + 6]
+        view_rotation.append(_rotation_of(pose[:3]))
+        view_translation.append(pose[3:].copy())
+    models = {}
+    for v, view in enumerate(views):
+        ids = tuple(d.tag_id for d in view.detections if d.tag_id in solved)
+        models[v] = (ids, edge_model(nominal, ids, 4))
+    n_free, n_views = len(free), len(views)
+    size = 6 * (n_free + n_views)
+    sigma2, hessian, profiles = 0.0, np.eye(size), 0
+    for iteration in range(iterations):
+        hessian = np.zeros((size, size))
+        gradient = np.zeros(size)
+        squares, profiles = 0.0, 0
+        for v, view in enumerate(views):
+            ids, model = models[v]
+            which = np.array(ids)[model.tag_index]
+            rotation = np.stack([tag_rotation[t] for t in ids])[model.tag_index]  # (M, 3, 3)
+            centre_nominal = np.stack([problem.centres[t] for t in ids])[model.tag_index]
+            centre = np.stack([tag_centre[t] for t in ids])[model.tag_index]
+            points = np.einsum("mij,mj->mi", rotation, model.points - centre_nominal) + centre
+            moved = type(model)(points, np.einsum("mij,mj->mi", rotation, model.tangents),
+                                np.einsum("mij,mj->mi", rotation, model.normals), model.cell_m, model.tag_index,
+                                model.run_index)
+            measured = _measure(view.image, moved, view_rotation[v], view_translation[v], calibration)
+            if measured is None or len(measured[0]) < MIN_PROFILES:
+                continue
+            offset, camera_j, kept = measured
+            middle = np.median(offset)
+            spread = 1.4826 * np.median(np.abs(offset - middle)) + 1e-3
+            inlier = np.abs(offset - middle) <= 4.0 * spread + 0.05
+            offset, camera_j, kept = offset[inlier], camera_j[inlier], kept[inlier]
+            # d(offset)/d(tag perturbation about its current centre): m = R_view^T n_j
+            m = camera_j[:, 3:] @ view_rotation[v]
+            lever = points[kept] - centre[kept]
+            tag_j = np.concatenate([np.cross(lever, m), m], axis=1)
+            columns = [6 * (n_free + v) + k for k in range(6)]
+            block = np.zeros((len(offset), size))
+            block[:, columns] = camera_j
+            for t in free:
+                rows = which[kept] == t
+                if rows.any():
+                    slot = problem.tag_slot[t]
+                    block[rows, 6 * slot: 6 * slot + 6] = tag_j[rows]
+            hessian += block.T @ block
+            gradient += block.T @ offset
+            squares += float(offset @ offset)
+            profiles += len(offset)
+        step = np.linalg.lstsq(hessian + 1e-9 * np.eye(size), gradient, rcond=None)[0]
+        for t in free:
+            slot = problem.tag_slot[t]
+            small = _rotation_of(step[6 * slot: 6 * slot + 3])
+            tag_rotation[t] = small @ tag_rotation[t]
+            tag_centre[t] = tag_centre[t] + step[6 * slot + 3: 6 * slot + 6]
+        for v in range(n_views):
+            small = _rotation_of(step[6 * (n_free + v): 6 * (n_free + v) + 3])
+            view_rotation[v] = small @ view_rotation[v]
+            view_translation[v] = small @ view_translation[v] + step[6 * (n_free + v) + 3: 6 * (n_free + v) + 6]
+        sigma2 = squares / max(profiles - size, 1)
+        if progress:
+            progress(f"edge iteration {iteration + 1}: {profiles} profiles, RMS {np.sqrt(squares / max(profiles, 1)):.3f} px")
+    covariance = sigma2 * np.linalg.pinv(hessian)
+    tags, refined_tags = [], []
+    for tag, before in zip(nominal.tags, corners_result.tags, strict=True):
+        if tag.tag_id not in free:
+            refined_tags.append(corners_result.refined.tag(tag.tag_id))
+            tags.append(before)
+            continue
+        corners = problem.local[tag.tag_id] @ tag_rotation[tag.tag_id].T + tag_centre[tag.tag_id]
+        refined_tags.append(Tag(tag.tag_id, corners, tag.face))
+        slot = problem.tag_slot[tag.tag_id]
+        sd = np.sqrt(np.clip(np.diag(covariance)[6 * slot: 6 * slot + 6], 0.0, None))
+        angle = float(np.degrees(np.linalg.norm(cv2.Rodrigues(tag_rotation[tag.tag_id])[0])))
+        tags.append(TagResult(tag.tag_id, before.views, True, False, (tag_centre[tag.tag_id] - problem.centres[tag.tag_id]) * 1000,
+                              angle, sd[3:] * 1000, np.degrees(sd[:3]), before.rms_px))
+    refined = Target(nominal.family, tuple(refined_tags), None, "")
+    validate_target(refined, "refined target")
+    return dataclasses.replace(corners_result, refined=refined, tags=tuple(tags), edge_profiles=profiles,
+                               edge_rms_px=float(np.sqrt(sigma2)))
 
 
 class _Problem:
