@@ -14,6 +14,8 @@ STAMPS := .make
 # libusb for pyusb, and aravis-tools (arv-tool, arv-fake-gv-camera) for technicians.
 DEB_PACKAGES := gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev \
                 pkg-config libusb-1.0-0 python3-venv python3-dev gcc
+# pytest workers: the suite runs on both cores of the CI machine
+TEST_WORKERS ?= 2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: all install test lint bench demo soak clean
@@ -44,7 +46,7 @@ lint: install
 	$(BIN)/ruff check .
 
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 bench: install
 	$(BIN)/python -m bench

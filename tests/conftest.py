@@ -26,3 +26,22 @@ def run_cli(*args: str, timeout: float = 120, **kwargs) -> subprocess.CompletedP
 @pytest.fixture
 def cli():
     return run_cli
+
+
+# Aravis' GigE Vision fake camera must own 127.0.0.1:3956 (GVCP), so at most one may run
+# on the machine: under pytest-xdist every test of a module that starts one goes to the
+# same worker (``--dist loadgroup``), where they run one after another.
+GV_FAKE_MARKERS = ("gv_fake", "GvFake")
+
+
+def _starts_gv_fake(path: Path, cache: dict[Path, bool] = {}) -> bool:  # noqa: B006 - a per-session memo
+    if path not in cache:
+        text = path.read_text(encoding="utf-8") if path.suffix == ".py" else ""
+        cache[path] = any(marker in text for marker in GV_FAKE_MARKERS)
+    return cache[path]
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if _starts_gv_fake(Path(str(item.fspath))):
+            item.add_marker(pytest.mark.xdist_group("gv_fake"))
