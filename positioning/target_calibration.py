@@ -254,19 +254,27 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
             m = camera_j[:, 3:] @ view_rotation[v]
             lever = points[kept] - centre[kept]
             tag_j = np.concatenate([np.cross(lever, m), m], axis=1)
-            columns = [6 * (n_free + v) + k for k in range(6)]
-            block = np.zeros((len(offset), size))
-            block[:, columns] = camera_j
+            # The normal equations block by block (each profile touches one view, one tag).
+            view_cols = slice(6 * (n_free + v), 6 * (n_free + v) + 6)
+            hessian[view_cols, view_cols] += camera_j.T @ camera_j
+            gradient[view_cols] += camera_j.T @ offset
             for t in free:
                 rows = which[kept] == t
                 if rows.any():
                     slot = problem.tag_slot[t]
-                    block[rows, 6 * slot: 6 * slot + 6] = tag_j[rows]
-            hessian += block.T @ block
-            gradient += block.T @ offset
+                    tag_cols = slice(6 * slot, 6 * slot + 6)
+                    hessian[tag_cols, tag_cols] += tag_j[rows].T @ tag_j[rows]
+                    cross = tag_j[rows].T @ camera_j[rows]
+                    hessian[tag_cols, view_cols] += cross
+                    hessian[view_cols, tag_cols] += cross.T
+                    gradient[tag_cols] += tag_j[rows].T @ offset[rows]
             squares += float(offset @ offset)
             profiles += len(offset)
-        step = np.linalg.lstsq(hessian + 1e-9 * np.eye(size), gradient, rcond=None)[0]
+        damped = hessian + 1e-9 * np.eye(size)
+        try:
+            step = np.linalg.solve(damped, gradient)
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(damped, gradient, rcond=None)[0]
         for t in free:
             slot = problem.tag_slot[t]
             small = _rotation_of(step[6 * slot: 6 * slot + 3])
@@ -279,7 +287,10 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
         sigma2 = squares / max(profiles - size, 1)
         if progress:
             progress(f"edge iteration {iteration + 1}: {profiles} profiles, RMS {np.sqrt(squares / max(profiles, 1)):.3f} px")
-    covariance = sigma2 * np.linalg.pinv(hessian)
+    try:
+        covariance = sigma2 * np.linalg.inv(hessian)
+    except np.linalg.LinAlgError:
+        covariance = sigma2 * np.linalg.pinv(hessian)
     tags, refined_tags = [], []
     for tag, before in zip(nominal.tags, corners_result.tags, strict=True):
         if tag.tag_id not in free:
