@@ -31,6 +31,7 @@ VERB_MODULES = (
     "daemon.commands.generate",
     "daemon.commands.calibrate",
     "daemon.commands.calibrate_target",
+    "daemon.commands.doctor",
 )
 
 

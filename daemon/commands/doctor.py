@@ -1,0 +1,467 @@
+"""``cubeloc doctor``: what a technician runs when something is wrong.
+
+One line per check, ``OK``, ``WARN`` or ``FAIL``, with the fix where there is one:
+
+* the configuration (``--config``, else ``$CUBELOC_CONFIG``, else /etc/cubeloc/cubeloc.toml);
+* the Aravis typelib (PyGObject + gir1.2-aravis-0.8);
+* cameras visible (Aravis: GigE Vision and USB3 Vision) and the configured one among them;
+* USB cameras: permission on the device node, link speed (a USB3 camera on a USB2 port);
+* GigE cameras: the packet size the path passes against the MTU of the interface that
+  reaches the camera, and the sensor size against ``camera.width/height``;
+* the calibration file: readable, valid, for ``camera.width x camera.height`` and for this
+  camera's serial number (``calibration.camera_serial``, written by ``cubeloc calibrate``);
+* the target file;
+* Zenoh: each configured endpoint reachable with the configured Zenoh file (TLS, user and
+  password apply), and the daemon's ``cubeloc/<name>/alive`` token seen there;
+* the service: ``systemctl is-active cubeloc`` where systemd runs.
+
+Exit code 0 when nothing fails (warnings allowed), 1 when a check fails. ``--json``
+prints one JSON document ``{"ok": bool, "checks": [{"check", "level", "message", "fix"}]}``.
+A camera another process holds (the running daemon) is not opened: its lock says who.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+OK, WARN, FAIL = "OK", "WARN", "FAIL"
+ZENOH_TIMEOUT_S = 3.0
+SERVICE = "cubeloc"
+
+
+@dataclass(frozen=True)
+class Check:
+    check: str  # what was checked: config, aravis, cameras, usb, gige, calibration, target, zenoh, service
+    level: str  # OK, WARN or FAIL
+    message: str
+    fix: str = ""
+
+    def line(self) -> str:
+        fix = f" -- fix: {self.fix}" if self.fix else ""
+        return f"{self.level:<4}  {self.check}: {self.message}{fix}"
+
+
+@dataclass(frozen=True)
+class CameraProbe:
+    """What opening the configured Aravis camera told (or why it was not opened)."""
+
+    sensor: tuple[int, int] | None = None
+    packet_size: int | None = None  # bytes per GVSP packet the path passes (GigE only)
+    busy: str = ""  # who holds the camera, when someone does
+    error: str = ""
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "doctor", help="check this machine: Aravis, cameras, USB, GigE MTU, calibration, target, Zenoh, service",
+        description="Check everything the daemon needs, one line per check (OK, WARN, FAIL) with the fix. "
+                    "Exit code 1 when a check fails.",
+    )
+    parser.add_argument("--config", metavar="FILE", help="TOML config file (default: as `cubeloc run`)")
+    parser.add_argument("--fake", action="store_true", help="also see Aravis' built-in fake camera (Fake_1)")
+    parser.add_argument("--json", action="store_true", help="one JSON document instead of lines")
+    parser.add_argument("--timeout", type=float, default=ZENOH_TIMEOUT_S, metavar="S",
+                        help=f"how long to wait for each Zenoh endpoint and the daemon's answer (default {ZENOH_TIMEOUT_S:g} s)")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from cubeloc.errors import ConfigError
+    from daemon.logs import configure_logging
+
+    configure_logging("error", "console", stream=sys.stderr)
+    if not 0 < args.timeout <= 60:
+        raise ConfigError(f"--timeout {args.timeout}: give 0 < S <= 60 seconds")
+    checks = diagnose(args.config, include_fake=args.fake, timeout_s=args.timeout)
+    failed = any(c.level == FAIL for c in checks)
+    if args.json:
+        print(json.dumps({"ok": not failed, "checks": [asdict(c) for c in checks]}, indent=1))
+    else:
+        for check in checks:
+            print(check.line())
+        print(f"{sum(c.level == FAIL for c in checks)} failed, {sum(c.level == WARN for c in checks)} warnings")
+    return 1 if failed else 0
+
+
+def diagnose(config_path: str | None, include_fake: bool = False, timeout_s: float = ZENOH_TIMEOUT_S) -> list[Check]:
+    """Every check, in the order a technician would go."""
+    from cubeloc.errors import CubelocError
+    from drivers.registry import parse_source
+
+    config, checks = check_config(config_path)
+    aravis_check, aravis_ok = check_aravis()
+    checks.append(aravis_check)
+    backend, argument = ("", "")
+    if config is not None:
+        try:
+            backend, argument = parse_source(config.camera.source)
+        except CubelocError as exc:  # CameraNotFound: an unknown backend
+            checks.append(Check("camera", FAIL, str(exc), "set camera.source (see systemd/cubeloc.toml)"))
+    include_fake = include_fake or argument.startswith("Fake_")
+    devices, camera_checks = check_cameras(aravis_ok, include_fake, backend, argument)
+    checks += camera_checks
+    checks += check_usb()
+    device = find_device(devices, argument) if backend == "aravis" else None
+    probe = probe_camera(device) if device is not None else None
+    if probe is not None and probe.busy:
+        checks.append(Check("camera", OK, f"in use, not opened: {probe.busy}"))
+    elif probe is not None and probe.error:
+        checks.append(Check("camera", FAIL, probe.error, "check power and cable; 'cubeloc devices' lists what is seen"))
+    if device is not None and device.transport == "gige" and probe is not None:
+        checks.append(check_gige(device, probe))
+    if config is None:
+        return checks + [check_service()]
+    checks += check_calibration(config, device, probe)
+    checks.append(check_target(config))
+    checks += check_zenoh(config, timeout_s)
+    checks.append(check_service())
+    return checks
+
+
+# -- configuration ---------------------------------------------------------------------------
+def check_config(path: str | None):
+    from cubeloc.errors import CubelocError
+    from daemon.config import DEFAULT_CONFIG_PATH, load_config
+
+    try:
+        config = load_config(path)
+    except CubelocError as exc:
+        return None, [Check("config", FAIL, str(exc), "correct the file (every key: systemd/cubeloc.toml)")]
+    if path is None and not os.environ.get("CUBELOC_CONFIG") and not DEFAULT_CONFIG_PATH.exists():
+        return config, [Check("config", WARN, f"no {DEFAULT_CONFIG_PATH}: checking the built-in defaults",
+                              f"sudo install -m 0644 systemd/cubeloc.toml {DEFAULT_CONFIG_PATH}, then edit it")]
+    where = path or os.environ.get("CUBELOC_CONFIG") or DEFAULT_CONFIG_PATH
+    return config, [Check("config", OK, f"{where} is valid (name {config.name}, camera {config.camera.source})")]
+
+
+# -- Aravis and cameras ------------------------------------------------------------------
+def check_aravis() -> tuple[Check, bool]:
+    try:
+        from drivers.aravis_camera import _aravis
+
+        Aravis, _ = _aravis()
+    except (ImportError, ValueError) as exc:  # no PyGObject, or no typelib
+        return Check("aravis", FAIL, f"the Aravis typelib does not load ({exc})",
+                     "sudo apt-get install gir1.2-aravis-0.8 (or: make install)"), False
+    return Check("aravis", OK, f"Aravis {getattr(Aravis, '_version', '0.8')} typelib loads"), True
+
+
+def check_cameras(aravis_ok: bool, include_fake: bool, backend: str, argument: str):
+    from drivers.discovery import discover
+
+    found = discover(include_fake=include_fake) if aravis_ok else None
+    devices = found.devices if found is not None else []
+    checks = [Check("cameras", WARN, note) for note in (found.notes if found is not None else [])
+              if not note.startswith("Aravis is not available")]
+    openable = [d for d in devices if d.device_id]
+    if openable:
+        listing = ", ".join(f"{d.device_id.removeprefix('aravis:')} ({d.transport}, {d.vendor} {d.model})".strip()
+                            for d in openable)
+        checks.append(Check("cameras", OK, f"{len(openable)} camera(s): {listing}"))
+    elif aravis_ok:
+        level = FAIL if backend == "aravis" else WARN
+        checks.append(Check("cameras", level, "no GigE Vision or USB3 Vision camera found",
+                            "check power and cable; GigE: same subnet as this machine; USB: see the usb lines"))
+    if backend in ("replay", "synthetic"):
+        checks.append(Check("camera", OK, f"camera.source is {backend}:{argument}: no camera hardware needed"))
+    elif backend == "aravis" and openable:
+        device = find_device(devices, argument)
+        if device is None:
+            known = ", ".join(d.device_id for d in openable)
+            checks.append(Check("camera", FAIL, f"camera.source aravis:{argument} is not among the cameras found",
+                                f"check the camera, or set camera.source to one of: {known}"))
+        else:
+            checks.append(Check("camera", OK, f"camera.source {'aravis:' + argument if argument else 'aravis'} is "
+                                f"{device.vendor} {device.model} serial {device.serial or '?'} ({device.transport})"))
+    return devices, checks
+
+
+def find_device(devices, argument: str):
+    """The device ``aravis[:argument]`` opens (the first openable one for a bare ``aravis``)."""
+    openable = [d for d in devices if d.device_id]
+    if not argument:
+        return openable[0] if openable else None
+    return next((d for d in openable if argument in (d.device_id.removeprefix("aravis:"), d.serial, d.address)), None)
+
+
+def check_usb() -> list[Check]:
+    from drivers.usb import PERMISSION_FIX, SPEED_NAMES, SPEED_SUPER, is_camera
+
+    try:
+        import usb.core
+
+        from drivers.usb import _facts
+    except ImportError:
+        return [Check("usb", WARN, "pyusb is not installed: USB permissions and link speed not checked",
+                      "pip install pyusb (make install)")]
+    try:
+        devices = list(usb.core.find(find_all=True))
+    except usb.core.NoBackendError:
+        return [Check("usb", WARN, "libusb not found: USB cameras not checked", "sudo apt-get install libusb-1.0-0")]
+    except (usb.core.USBError, OSError) as exc:
+        return [Check("usb", WARN, f"USB enumeration failed ({exc})")]
+    checks = []
+    for device in devices:
+        try:
+            facts = _facts(device)
+        except (usb.core.USBError, OSError, ValueError):
+            continue
+        if not is_camera(facts):
+            continue
+        name = f"{facts.manufacturer or f'{facts.vendor_id:04x}'} {facts.product or f'{facts.product_id:04x}'} at usb {facts.port_path}"
+        if not facts.accessible:
+            checks.append(Check("usb", FAIL, f"{name}: no read/write permission on /dev/bus/usb/"
+                                f"{facts.bus:03d}/{facts.address:03d}", PERMISSION_FIX))
+        if facts.bcd_usb >= 0x0300 and facts.speed is not None and facts.speed < SPEED_SUPER:
+            checks.append(Check("usb", WARN, f"{name}: USB3 camera on a {SPEED_NAMES.get(facts.speed, 'slow')} link",
+                                "plug it into a USB3 port (often blue) with a USB3 cable"))
+        elif facts.accessible:
+            checks.append(Check("usb", OK, f"{name}: {SPEED_NAMES.get(facts.speed, 'link speed unknown')}, permissions OK"))
+    return checks
+
+
+def probe_camera(device) -> CameraProbe:
+    """Open the camera briefly (unless someone holds it): sensor size, GigE packet size."""
+    from cubeloc.errors import CubelocError
+    from drivers.aravis_camera import _aravis
+    from drivers.ownership import CameraLock
+
+    aravis_id = device.device_id.removeprefix("aravis:")
+    lock = CameraLock(aravis_id)
+    try:
+        lock.acquire()
+    except CubelocError as exc:  # CameraBusy: the running daemon, usually
+        return CameraProbe(busy=str(exc))
+    try:
+        Aravis, GLib = _aravis()
+        if aravis_id.startswith("Fake_"):
+            Aravis.enable_interface("Fake")
+        try:
+            camera = Aravis.Camera.new(aravis_id)
+        except GLib.Error as exc:
+            return CameraProbe(error=f"cannot open {aravis_id} ({exc.message})")
+        sensor = tuple(camera.get_sensor_size())
+        packet = None
+        if camera.is_gv_device():
+            try:
+                packet = int(camera.gv_auto_packet_size())  # what the path passes, as the driver negotiates
+            except GLib.Error:
+                packet = int(camera.gv_get_packet_size())
+        del camera
+        return CameraProbe(sensor=(int(sensor[0]), int(sensor[1])), packet_size=packet)
+    finally:
+        lock.release()
+
+
+def route_interface(address: str) -> str | None:
+    """The network interface that reaches ``address`` (``ip route get``), or None."""
+    if shutil.which("ip") is None:
+        return None
+    try:
+        out = subprocess.run(["ip", "-o", "route", "get", address], capture_output=True, text=True, timeout=5).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    words = out.split()
+    return words[words.index("dev") + 1] if "dev" in words[:-1] else None
+
+
+def interface_mtu(interface: str) -> int | None:
+    try:
+        return int(Path(f"/sys/class/net/{interface}/mtu").read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def packet_size_verdict(camera: str, packet_size: int, interface: str | None, mtu: int | None) -> Check:
+    """GevSCPSPacketSize (IP + UDP + GVSP headers and data) against the interface MTU."""
+    if interface is None or mtu is None:
+        return Check("gige", WARN, f"{camera}: packets of {packet_size} bytes; the interface towards the camera "
+                     "and its MTU are unknown", "check with: ip route get CAMERA_IP; ip link")
+    if packet_size > mtu:
+        return Check("gige", FAIL, f"{camera}: packets of {packet_size} bytes exceed the MTU {mtu} of {interface}: "
+                     "frames arrive incomplete", f"sudo ip link set dev {interface} mtu {max(packet_size, 9000)} "
+                     "(and jumbo frames on the switch), or lower the camera's packet size")
+    if mtu >= 8000 and packet_size <= 1500:
+        return Check("gige", WARN, f"{camera}: {interface} has jumbo frames (MTU {mtu}) but only {packet_size}-byte "
+                     "packets are used: the camera, or something on the path, does not take jumbo frames",
+                     "enable jumbo frames on the switch and the camera's NIC; meanwhile it works at higher CPU load")
+    hint = " (jumbo frames, MTU 9000, would lower the CPU load)" if mtu <= 1500 else ""
+    return Check("gige", OK, f"{camera}: packets of {packet_size} bytes fit the MTU {mtu} of {interface}{hint}")
+
+
+def check_gige(device, probe: CameraProbe) -> Check:
+    name = device.device_id.removeprefix("aravis:")
+    if probe.busy:
+        return Check("gige", OK, f"{name}: packet size not checked while the camera is in use")
+    if probe.error or probe.packet_size is None:
+        return Check("gige", FAIL, f"{name}: {probe.error or 'no packet size'}", "check power, cable and network")
+    interface = route_interface(device.address) if device.address else None
+    return packet_size_verdict(name, probe.packet_size, interface, interface_mtu(interface) if interface else None)
+
+
+# -- files -------------------------------------------------------------------------------
+def check_calibration(config, device, probe: CameraProbe | None) -> list[Check]:
+    from calib.camera_info import read_camera_info
+    from cubeloc.errors import CubelocError
+
+    path = config.positioning.calibration
+    fix = (f"calibrate: cubeloc calibrate --board SPEC --camera {device.device_id.removeprefix('aravis:')} "
+           f"--out {path}" if device is not None else f"calibrate the camera: cubeloc calibrate ... --out {path}")
+    try:
+        calibration = read_camera_info(path)
+    except CubelocError as exc:
+        return [Check("calibration", FAIL, str(exc), fix)]
+    checks = []
+    size = (config.camera.width, config.camera.height)
+    if calibration.size != size:
+        checks.append(Check("calibration", FAIL, f"{path} is for {calibration.width}x{calibration.height} images but "
+                            f"the camera is set to {size[0]}x{size[1]}",
+                            f"calibrate at {size[0]}x{size[1]}, or set camera.width/height to match the calibration"))
+    if probe is not None and probe.sensor is not None and (size[0] > probe.sensor[0] or size[1] > probe.sensor[1]):
+        checks.append(Check("calibration", FAIL, f"camera.width/height {size[0]}x{size[1]} exceed the sensor "
+                            f"{probe.sensor[0]}x{probe.sensor[1]}", "set camera.width/height within the sensor"))
+    serial = str(calibration.metadata.get("camera_serial") or "")
+    if device is not None and device.serial and serial and serial != device.serial:
+        checks.append(Check("calibration", FAIL, f"{path} was made for camera serial {serial}, the configured "
+                            f"camera is serial {device.serial}", fix))
+    elif not serial:
+        checks.append(Check("calibration", WARN, f"{path} does not say which camera it is for "
+                            "(no calibration.camera_serial)", "make sure it is this camera's; cubeloc calibrate records it"))
+    if not any(c.level == FAIL for c in checks):
+        rms = calibration.metadata.get("rms_px")
+        detail = f", RMS {rms} px" if rms is not None else ""
+        checks.append(Check("calibration", OK, f"{path}: {calibration.width}x{calibration.height}"
+                            f"{', serial ' + serial if serial else ''}{detail}"))
+    return checks
+
+
+def check_target(config) -> Check:
+    from cubeloc.errors import CubelocError
+    from positioning.target import load_target
+
+    path = config.positioning.target
+    try:
+        target = load_target(path)
+    except CubelocError as exc:
+        return Check("target", FAIL, str(exc), "correct it, or write one: cubeloc generate cube --help")
+    if target.cube is not None:
+        what = (f"{target.family} cube {target.cube.side_m * 1000:.0f} mm, tags {target.cube.tag_size_m * 1000:.0f} mm, "
+                f"ids {list(target.ids)}")
+    else:
+        what = f"{target.family}, {len(target.tags)} tags, ids {list(target.ids)}"
+    return Check("target", OK, f"{path}: {what}")
+
+
+# -- Zenoh and the service ---------------------------------------------------------------
+def _probe_endpoints(settings) -> list[tuple[str, str, str]]:
+    """(endpoint to try, where it came from, as configured): the connect endpoints, and the
+    daemon's own listen endpoints seen from this machine (0.0.0.0 becomes 127.0.0.1)."""
+    out = [(e, "connect", e) for e in settings.connect]
+    for endpoint in settings.listen:
+        protocol, _, rest = endpoint.partition("/")
+        address = rest.split("?")[0].split("#")[0]
+        host, _, port = address.rpartition(":")
+        if host in ("0.0.0.0", "[::]"):
+            host = "127.0.0.1" if host == "0.0.0.0" else "[::1]"
+        out.append((f"{protocol}/{host}:{port}", "listen", endpoint))
+    return out
+
+
+def _port_free(endpoint: str) -> bool:
+    """Could the daemon bind ``endpoint`` (a listen endpoint) now?"""
+    protocol, _, rest = endpoint.partition("/")
+    address = rest.split("?")[0].split("#")[0]
+    host, _, port = address.rpartition(":")
+    kind = socket.SOCK_DGRAM if protocol in ("udp", "quic") else socket.SOCK_STREAM
+    family = socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET
+    with socket.socket(family, kind) as probe:
+        try:
+            probe.bind((host.strip("[]"), int(port)))
+        except OSError:
+            return False
+    return True
+
+
+def check_zenoh(config, timeout_s: float = ZENOH_TIMEOUT_S) -> list[Check]:
+    import zenoh
+
+    from cubeloc.errors import CubelocError
+    from daemon.zenoh_session import build_zenoh_config, zenoh_error_text
+
+    settings = config.zenoh
+    try:
+        build_zenoh_config(settings)
+    except CubelocError as exc:
+        return [Check("zenoh", FAIL, str(exc), "correct the [zenoh] section or the Zenoh config file")]
+    alive_key = f"cubeloc/{config.name}/alive"
+    targets = _probe_endpoints(settings) or [("", "scouting", "")]
+    checks = []
+    for endpoint, origin, configured in targets:
+        probe = settings.model_copy(update={"listen": (), "connect": (endpoint,) if endpoint else (),
+                                            "mode": "client" if endpoint else "peer"})
+        conf = build_zenoh_config(probe)
+        try:
+            conf.insert_json5("listen/endpoints", "[]")  # never take the daemon's port
+            if endpoint:
+                conf.insert_json5("mode", '"client"')
+                conf.insert_json5("connect/timeout_ms", str(int(timeout_s * 1000)))
+            session = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            checks.append(_unreachable(endpoint, origin, configured, zenoh_error_text(exc)))
+            continue
+        try:
+            alive = [r for r in session.liveliness().get(alive_key, timeout=timeout_s) if r.ok is not None]
+        finally:
+            session.close()
+        if not endpoint:
+            found = "found" if alive else "did not find"
+            checks.append(Check("zenoh", OK if alive else WARN, f"no endpoints configured: multicast scouting {found} "
+                                f"{alive_key}", "" if alive else "is the daemon running, with this name, on this LAN?"))
+        elif alive:
+            checks.append(Check("zenoh", OK, f"{endpoint} ({origin}): reachable, the daemon's {alive_key} is there"))
+        else:
+            checks.append(Check("zenoh", WARN, f"{endpoint} ({origin}): reachable, but no {alive_key}",
+                                "is the daemon running with this name? systemctl status cubeloc"))
+    return checks
+
+
+def _unreachable(endpoint: str, origin: str, configured: str, error: str) -> Check:
+    if not endpoint:
+        return Check("zenoh", FAIL, f"cannot open a Zenoh session ({error})", "check the Zenoh config file")
+    if origin == "listen":
+        if _port_free(configured):
+            return Check("zenoh", WARN, f"{endpoint} (listen): nothing listens there: the daemon is not running",
+                         "start it: sudo systemctl start cubeloc")
+        return Check("zenoh", FAIL, f"{endpoint} (listen): the port is taken, but not by a Zenoh peer that lets "
+                     f"us in ({error})", "find the other process (ss -ltnup), or fix TLS/credentials in the Zenoh file")
+    return Check("zenoh", FAIL, f"{endpoint} (connect): unreachable ({error})",
+                 "check the router/peer at that address, the network, and TLS/credentials in the Zenoh file")
+
+
+def check_service() -> Check:
+    if shutil.which("systemctl") is None or not Path("/run/systemd/system").is_dir():
+        return Check("service", WARN, "systemd is not running on this machine: the service state is not checked")
+    try:
+        state = subprocess.run(["systemctl", "is-active", SERVICE], capture_output=True, text=True,
+                               timeout=10).stdout.strip()
+        known = subprocess.run(["systemctl", "cat", SERVICE], capture_output=True, text=True, timeout=10).returncode == 0
+    except (OSError, subprocess.SubprocessError) as exc:
+        return Check("service", WARN, f"systemctl failed ({exc})")
+    if not known:
+        return Check("service", WARN, "cubeloc.service is not installed", "see systemd/README.md")
+    if state == "active":
+        return Check("service", OK, "cubeloc.service is active")
+    if state == "activating":
+        return Check("service", WARN, "cubeloc.service is starting (waiting for the camera?)",
+                     "systemctl status cubeloc shows what it waits for")
+    if state == "failed":
+        return Check("service", FAIL, "cubeloc.service has failed",
+                     "journalctl -u cubeloc -n 50 shows why; then sudo systemctl restart cubeloc")
+    return Check("service", WARN, f"cubeloc.service is {state}", "sudo systemctl enable --now cubeloc")
