@@ -35,8 +35,8 @@ def three_face_views(distance_m: float, count: int, seed: int):
     return views
 
 
-def position_errors(views, *, hidden_tags=(), seed=0):
-    processor = TargetPoseProcessor(CUBE, CAMERA)
+def position_errors(views, *, hidden_tags=(), seed=0, edge_alignment=True):
+    processor = TargetPoseProcessor(CUBE, CAMERA, edge_alignment=edge_alignment)
     errors, planes = [], []
     for k, truth in enumerate(views):
         processor.reset()
@@ -48,48 +48,62 @@ def position_errors(views, *, hidden_tags=(), seed=0):
     return np.array(errors), planes
 
 
-def test_three_faces_at_2_m_within_1_mm():
+# Issue 9's goals, on the same views as the corners-only baseline (target pose issue):
+# median 0.5 mm at 2 m and 2.5 mm at 4 m (baseline measured here 0.22 mm and 1.3 mm;
+# with the edge alignment 0.08 mm and 0.63 mm).
+def test_three_faces_at_2_m_within_half_a_millimetre():
     errors, planes = position_errors(three_face_views(2.0, 8, seed=1))
     assert planes == [3] * 8
-    assert np.median(errors) <= 1.0e-3
+    assert np.median(errors) <= 0.5e-3
 
 
-def test_three_faces_at_4_m_within_5_mm():
+def test_three_faces_at_4_m_within_2_5_mm():
     errors, planes = position_errors(three_face_views(4.0, 8, seed=2), seed=100)
     assert planes == [3] * 8
-    assert np.median(errors) <= 5.0e-3
+    assert np.median(errors) <= 2.5e-3
 
 
-def test_two_faces_within_three_times_the_three_face_error():
+def test_two_faces_within_one_and_a_half_times_the_three_face_error():
     views = three_face_views(2.0, 8, seed=3)
     three, _ = position_errors(views, seed=200)
     two, planes = position_errors(views, hidden_tags=(4,), seed=200)  # top face blank
     assert planes == [2] * 8
-    assert np.median(two) <= 3 * max(np.median(three), 0.3e-3)
+    assert np.median(two) <= 1.5 * max(np.median(three), 0.05e-3)
 
 
 @pytest.mark.slow
 def test_static_stability_over_100_frames_at_1_9_m():
     truth = three_face_views(1.9, 1, seed=4)[0]
-    # A camera at rest: one noiseless frame, then fresh sensor noise (sigma 2) per frame.
+    # A camera at rest: one noiseless frame, then fresh sensor noise (sigma 2) per frame,
+    # the same frames for the edge alignment and for the corners-only baseline.
     still = render_view(truth, noise_sigma=0.0).astype(np.float64)
     rng = np.random.default_rng(4)
-    processor = TargetPoseProcessor(CUBE, CAMERA)
-    positions, regions = [], 0
+    aligned, corners_only = TargetPoseProcessor(CUBE, CAMERA), TargetPoseProcessor(CUBE, CAMERA, edge_alignment=False)
+    positions, baseline, regions = [], [], 0
     for k in range(100):
         frame = np.clip(np.round(still + rng.normal(0.0, 2.0, still.shape)), 0, 255).astype(np.uint8)
-        result = processor.process(frame, k, k)
+        result = aligned.process(frame, k, k)
         assert result.estimate is not None and result.estimate.planes == 3
         positions.append(result.estimate.T_world_camera.translation)
-        regions += processor.last_search == "predicted"
-    positions = np.array(positions)
+        regions += aligned.last_search == "predicted"
+        if k % 2 == 0:
+            baseline.append(corners_only.process(frame, k, k).estimate.T_world_camera.translation)
+    positions, baseline = np.array(positions), np.array(baseline)
     # Stability as the paper measures it (a camera at rest, truth unknown): RMSE of the
-    # outputs about their mean, per axis. Their offset from the truth is accuracy, held
-    # to the 2 m bound.
+    # outputs about their mean, per axis; and their offset from the truth (bias).
+    # Issue 9's goals: 0.07 mm per axis and 0.3 mm (measured 0.04-0.05 mm and 0.16 mm;
+    # the corners-only baseline 0.10-0.11 mm and 0.47 mm).
     rmse_per_axis = np.sqrt(np.mean((positions - positions.mean(axis=0)) ** 2, axis=0))
-    assert np.all(rmse_per_axis <= 0.2e-3), rmse_per_axis
-    assert np.linalg.norm(positions.mean(axis=0) - truth.translation) <= 1.0e-3
+    bias = np.linalg.norm(positions.mean(axis=0) - truth.translation)
+    assert np.all(rmse_per_axis <= 0.07e-3), rmse_per_axis
+    assert bias <= 0.3e-3, bias
+    baseline_rmse = np.sqrt(np.mean((baseline - baseline.mean(axis=0)) ** 2, axis=0))
+    assert np.linalg.norm(rmse_per_axis) * 1.5 <= np.linalg.norm(baseline_rmse)
+    assert bias * 1.5 <= np.linalg.norm(baseline.mean(axis=0) - truth.translation)
     assert regions == 99  # every frame after the first searched the predicted region only
+    # The covariance the pose carries matches the scatter (within a factor of 2).
+    predicted = np.sqrt(np.diag(result.estimate.covariance)[:3])
+    assert np.all(predicted <= 2.0 * rmse_per_axis) and np.all(predicted >= 0.5 * rmse_per_axis), predicted
 
 
 def test_library_corners_are_in_opencv_pixels_after_the_half_pixel_shift():

@@ -1,0 +1,123 @@
+"""The pose aligned to every cell edge of the tags (positioning.edge_alignment, tag_bits)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from calib.camera_info import CameraCalibration, paper_camera
+from fakes import render_view
+from fakes.optics import project
+from fakes.scene import tag_bits
+from positioning.detection import TagDetector, refine_corners
+from positioning.edge_alignment import align_to_edges, project_with_jacobian, refine_pose_on_edges
+from positioning.geometry import Transform
+from positioning.range_map import camera_on_sphere
+from positioning.tag_bits import grid_to_world, tag_cells, tag_edges
+from positioning.target import make_cube
+from positioning.target_pose import estimate_target_pose
+
+CUBE = make_cube()
+CAMERA = paper_camera()
+
+
+def test_tag_edges_are_the_black_white_boundaries_of_the_code():
+    for tag_id in (0, 4, 17, 586):
+        cells = tag_cells("tag36h11", tag_id)
+        assert np.array_equal(cells, tag_bits("tag36h11", tag_id))  # the renderer's drawing
+        edges = tag_edges("tag36h11", tag_id)
+        padded = np.ones((10, 10), np.uint8)
+        padded[1:-1, 1:-1] = cells
+        # Outer border: four full-length edges, white outside.
+        assert edges.outer.sum() == 4
+        assert np.all(np.abs(edges.end[edges.outer] - edges.start[edges.outer]).sum(axis=1) == 8)
+        # Every run: colours differ across it along its whole length, white where ``bright`` points.
+        covered = 0
+        for start, end, bright in zip(edges.start, edges.end, edges.bright, strict=True):
+            along = (end - start) / np.abs(end - start).sum()
+            for step in range(int(np.abs(end - start).sum())):
+                middle = start + (step + 0.5) * along
+                white_side = np.floor(middle + 0.5 * bright).astype(int) + 1  # padded (col, row)
+                black_side = np.floor(middle - 0.5 * bright).astype(int) + 1
+                assert padded[white_side[1], white_side[0]] == 1 and padded[black_side[1], black_side[0]] == 0
+                covered += 1
+        # ... and no boundary is missed: count cell sides with different colours.
+        differing = (padded[:, 1:] != padded[:, :-1])[1:-1].sum() + (padded[1:, :] != padded[:-1, :])[:, 1:-1].sum()
+        assert covered == differing
+
+
+def test_grid_points_are_on_the_tag():
+    tag = CUBE.tag(1)
+    grid = np.array([[0, 0], [8, 0], [8, 8], [0, 8], [4, 4]], float)
+    assert np.allclose(grid_to_world(tag.corners, 8, grid), np.vstack([tag.corners, tag.center]))
+
+
+def test_projection_and_jacobian_match_opencv_with_distortion():
+    calibration = CameraCalibration(1280, 1024, CAMERA.camera_matrix,
+                                    np.array([-0.21, 0.12, 0.001, -0.0007, -0.03, 0.01, 0.002, 0.001]))
+    rng = np.random.default_rng(1)
+    points = np.column_stack([rng.uniform(-0.6, 0.6, (50, 2)), rng.uniform(1.0, 3.0, 50)])
+    pixels, jacobian = project_with_jacobian(points, calibration)
+    expected, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), calibration.camera_matrix,
+                                    calibration.distortion)
+    assert np.abs(pixels - expected.reshape(-1, 2)).max() < 1e-9
+    for axis in range(3):
+        step = np.zeros(3)
+        step[axis] = 1e-6
+        plus, _ = project_with_jacobian(points + step, calibration)
+        minus, _ = project_with_jacobian(points - step, calibration)
+        assert np.abs(jacobian[:, :, axis] - (plus - minus) / 2e-6).max() < 1e-3
+
+
+def test_renderer_and_detection_agree_on_corners_to_0_02_px():
+    # Before tuning the estimator: noise-free renders, refined corners against the exact
+    # projection of the 3-D corners. No convention offset, no scale error.
+    detector = TagDetector()
+    offsets = []
+    for azimuth in (35.0, 55.0):
+        truth = camera_on_sphere(azimuth, 30.0, 2.0)
+        image = render_view(truth, noise_sigma=0.0)
+        for detection in detector.detect(image):
+            refined = refine_corners(image, detection, CAMERA.camera_matrix, CAMERA.distortion)
+            true = project(truth.inverse().apply(CUBE.tag(detection.tag_id).corners), CAMERA)
+            offsets.append(refined.corners - true)
+    offsets = np.concatenate(offsets)
+    assert len(offsets) >= 16  # four tags or more
+    assert np.sqrt(np.mean(offsets**2)) < 0.02
+    assert np.all(np.abs(offsets.mean(axis=0)) < 0.005)
+
+
+def _position_error_mm(fit, truth: Transform) -> float:
+    T = Transform.from_rvec_tvec(fit.rvec, fit.tvec).inverse()
+    return float(np.linalg.norm(T.translation - truth.translation) * 1000)
+
+
+def test_alignment_converges_from_a_pose_a_few_pixels_off():
+    truth = camera_on_sphere(40.0, 30.0, 2.0)
+    image = render_view(truth, seed=3)
+    T_camera_world = truth.inverse()
+    start_rvec = T_camera_world.rvec() + np.radians([0.05, -0.04, 0.03])
+    start_tvec = T_camera_world.translation + [0.002, -0.0015, 0.004]  # ~1-3 px
+    fit = align_to_edges(image, CUBE, CAMERA, (0, 1, 4), start_rvec, start_tvec, iterations=4)
+    assert fit is not None and fit.profiles > 1000
+    assert _position_error_mm(fit, truth) < 0.3  # one frame, sigma 2 noise
+    assert np.sqrt(np.mean(fit.residuals_px**2)) < 0.1
+    # From the pose of the library's own corners, through the processor's entry point.
+    pose = estimate_target_pose(TagDetector().detect(image), CUBE, CAMERA).pose  # the library's corners
+    refined = refine_pose_on_edges(image, pose, CUBE, CAMERA)
+    assert np.linalg.norm(refined.T_world_camera.translation - truth.translation) < 0.3e-3
+    assert np.linalg.norm(refined.T_world_camera.translation - truth.translation) < np.linalg.norm(
+        pose.T_world_camera.translation - truth.translation)
+    assert refined.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(refined.covariance) > 0)
+    blank = np.full_like(image, 128)
+    assert refine_pose_on_edges(blank, pose, CUBE, CAMERA) is pose  # nothing to align to: unchanged
+
+
+def test_a_glare_spot_on_one_face_does_not_pull_the_pose():
+    truth = camera_on_sphere(50.0, 32.0, 2.0)
+    image = render_view(truth, seed=4, glare_tag=1, glare_strength=1.5)
+    detections = [refine_corners(image, d, CAMERA.camera_matrix, CAMERA.distortion) for d in TagDetector().detect(image)]
+    detections = [d for d in detections if d is not None]
+    pose = estimate_target_pose(detections, CUBE, CAMERA).pose
+    refined = refine_pose_on_edges(image, pose, CUBE, CAMERA)
+    assert np.linalg.norm(refined.T_world_camera.translation - truth.translation) < 0.5e-3
