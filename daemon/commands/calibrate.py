@@ -174,33 +174,38 @@ def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path
         raise InputFileError(f"--min-views {args.min_views} / --max-views {args.max_views}: need {MIN_VIEWS} <= min <= max")
     camera = make_camera(args.camera, _camera_settings(args.config))
     stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())  # the loop finishes cleanly
+    # SIGTERM ends the capture loop cleanly; the handler stays until the results are
+    # written, so a SIGTERM while solving or writing lets the writes finish (exit 0)
+    # instead of killing the process between the views, the report and the calibration.
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         try:
-            camera.open()
-        except CameraBusy as exc:
-            raise CameraBusy(f"{exc}; calibrate, then start the daemon again ('systemctl start cubeloc')") from None
-        serial = camera.info.serial
-        camera.start()
-        accepted, ended = _capture_views(camera, board, args, stop)
+            try:
+                camera.open()
+            except CameraBusy as exc:
+                raise CameraBusy(f"{exc}; calibrate, then start the daemon again ('systemctl start cubeloc')") from None
+            serial = camera.info.serial
+            camera.start()
+            accepted, ended = _capture_views(camera, board, args, stop)
+        finally:
+            with contextlib.suppress(Exception):
+                camera.stop()
+            camera.close()
+        print(f"\ncapture ended: {ended}; {len(accepted)} views kept", flush=True)
+        if len(accepted) < MIN_VIEWS:
+            raise CubelocError(
+                f"only {len(accepted)} views were kept ({ended}); at least {MIN_VIEWS} are needed: nothing written"
+            )
+        height, width = accepted[0][1].shape
+        detections = [ImageDetection(Path(name), (width, height), det) for name, _, det in accepted]
+        views, skipped = views_from_detections(detections, board)
+        run = calibrate_views(
+            views, (width, height), board, options, skipped=skipped, camera_name=args.camera_name, camera_serial=serial
+        )
+        _write_views(views_dir, board, accepted)
+        _write_results(run, out, report_png, views_note=f", {views_dir}/ ({len(accepted)} images + corners.yaml)")
     finally:
         signal.signal(signal.SIGTERM, previous)
-        with contextlib.suppress(Exception):
-            camera.stop()
-        camera.close()
-    print(f"\ncapture ended: {ended}; {len(accepted)} views kept", flush=True)
-    if len(accepted) < MIN_VIEWS:
-        raise CubelocError(
-            f"only {len(accepted)} views were kept ({ended}); at least {MIN_VIEWS} are needed: nothing written"
-        )
-    height, width = accepted[0][1].shape
-    detections = [ImageDetection(Path(name), (width, height), det) for name, _, det in accepted]
-    views, skipped = views_from_detections(detections, board)
-    run = calibrate_views(
-        views, (width, height), board, options, skipped=skipped, camera_name=args.camera_name, camera_serial=serial
-    )
-    _write_views(views_dir, board, accepted)
-    _write_results(run, out, report_png, views_note=f", {views_dir}/ ({len(accepted)} images + corners.yaml)")
     return 0
 
 
