@@ -52,8 +52,10 @@ def camera_on_sphere(azimuth_deg: float, elevation_deg: float, distance_m: float
 
 
 def range_sweep(target: Target, calibration: CameraCalibration, render: Render,
-                azimuths_deg: Sequence[float], distances_m: Sequence[float], elevation_deg: float) -> list[RangeCell]:
-    processor = TargetPoseProcessor(target, calibration)
+                azimuths_deg: Sequence[float], distances_m: Sequence[float], elevation_deg: float,
+                edge_alignment: bool = True) -> list[RangeCell]:
+    """One view per (distance, azimuth); ``edge_alignment`` False is the corners-only pose."""
+    processor = TargetPoseProcessor(target, calibration, edge_alignment=edge_alignment)
     cells = []
     for i, distance in enumerate(distances_m):
         for j, azimuth in enumerate(azimuths_deg):

@@ -46,6 +46,11 @@ REGION_MARGIN_PX = 16
 MAX_PREDICTED_ANGLE_DEG = 80.0
 
 
+# A predicted tag this large (pixels) is searched with more decimation: its quad is still
+# 30 px or more in the decimated image, and a third cheaper to find.
+LARGE_TAG_PX = 90.0
+LARGE_TAG_DECIMATE = 3.0
+
 # Recovery searches this many tag sizes around a lone tag for its neighbours.
 NEIGHBOURHOOD_TAG_SIZES = 1.2
 # A tag needs a white quiet zone one cell wide; the masked search keeps this much of it.
@@ -57,6 +62,7 @@ class TagRegion:
     tag_id: int
     roi: tuple[int, int, int, int]  # x0, y0, x1, y1 pixels
     quiet_zone: np.ndarray  # (4, 2) pixels: the tag and most of its white margin, predicted
+    size_px: float = 0.0  # the tag's predicted size (longest side of its pixel box)
 
 
 def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
@@ -86,7 +92,7 @@ def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_worl
         x0, y0 = max(int(x0), 0), max(int(y0), 0)
         x1, y1 = min(int(x1), calibration.width), min(int(y1), calibration.height)
         if x1 - x0 >= 16 and y1 - y0 >= 16:
-            regions.append(TagRegion(tag.tag_id, (x0, y0, x1, y1), quiet_zone))
+            regions.append(TagRegion(tag.tag_id, (x0, y0, x1, y1), quiet_zone, float((high - low).max())))
     return regions
 
 
@@ -136,7 +142,10 @@ class TargetPoseProcessor:
     def _detect_in(self, image: np.ndarray, regions: list[TagRegion], decimate: float | None) -> list[TagDetection]:
         found: list[TagDetection] = []
         for region in regions:
-            found.extend(self._detector.detect(image, region.roi, decimate))
+            region_decimate = decimate
+            if decimate is None and region.size_px >= LARGE_TAG_PX:
+                region_decimate = LARGE_TAG_DECIMATE
+            found.extend(self._detector.detect(image, region.roi, region_decimate))
         return self._ours(found)
 
     def _detect_masked(self, image: np.ndarray, regions: list[TagRegion]) -> list[TagDetection]:

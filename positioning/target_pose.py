@@ -152,9 +152,12 @@ def _project(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, calib
 def _refine(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
             calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    # Column vectors: given (3,) arrays, OpenCV's binding refines a converted copy and
+    # returns the start unchanged (and spends 20x longer doing it).
     rvec, tvec = cv2.solvePnPRefineLM(
         points_world, pixels, calibration.camera_matrix, calibration.distortion,
-        rvec.copy(), tvec.copy(), criteria,
+        np.asarray(rvec, np.float64).reshape(3, 1).copy(), np.asarray(tvec, np.float64).reshape(3, 1).copy(),
+        criteria,
     )
     return rvec.reshape(3), tvec.reshape(3)
 
