@@ -170,6 +170,7 @@ def run_soak(
     sample_s: float = 10.0,
     warmup_s: float | None = None,
     unplug_every_s: float | None = 300.0,
+    room: bool = True,
     progress=None,
 ) -> SoakResult:
     """Run the daemon for ``seconds`` and check it (see the module docstring)."""
@@ -178,7 +179,7 @@ def run_soak(
     from fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
 
     warmup_s = min(180.0, seconds / 10) if warmup_s is None else warmup_s
-    frames, poses = orbit_frames(images)
+    frames, poses = orbit_frames(images, room=room)
     cycling = CyclingCamera(frames, poses, fps=fps, name="soak")
     faults = {}
     if unplug_every_s:
