@@ -116,10 +116,12 @@ class Map:
         no remaining keyframe observes them and no live track follows them."""
         while len(self.keyframes) > max_keyframes:
             self.keyframes.popitem(last=False)
-        observed: set[int] = set(live_track_ids)
-        for kf in self.keyframes.values():
-            observed.update(int(t) for t in kf.track_ids)
-        for track_id in [t for t in self.points if t not in observed]:
-            self.remove_point(track_id)
+        if not self.points:
+            return
+        ids = np.fromiter(self.points.keys(), np.int64, len(self.points))
+        held = [np.fromiter(live_track_ids, np.int64, len(live_track_ids))]
+        held += [kf.track_ids for kf in self.keyframes.values()]
+        for track_id in ids[~np.isin(ids, np.concatenate(held))]:  # one vectorised test, not a set per id
+            self.remove_point(int(track_id))
         # keyframe observations of tracks that will never become points cost memory only
         # while the keyframe lives, so they go with it
