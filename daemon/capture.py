@@ -49,6 +49,8 @@ POLL_S = 0.25
 FAULT_LOG_PERIOD_S = 10.0
 STAMP_RESTART_FRAMES = 3
 CAMERA_COUNTERS = ("incomplete", "bad_timestamp", "frame_id_gaps", "timeouts")
+DROPPED_KINDS = ("bad_format", "wrong_size", "stamp_not_increasing")  # the faults that drop the frame
+GEV1_MAX_BLOCK_ID = 0xFFFF  # GigE Vision 1 block ids are 16-bit and skip 0 when they wrap
 
 
 class CaptureThread(threading.Thread):
@@ -121,7 +123,8 @@ class CaptureThread(threading.Thread):
             self._faults[kind] += 1
             count = self._faults[kind]
         now = time.monotonic()
-        self.last_fault = (now, f"{message} ({', '.join(f'{k} {v}' for k, v in fields.items())})")
+        if kind in DROPPED_KINDS:
+            self.last_fault = (now, f"{message} ({', '.join(f'{k} {v}' for k, v in fields.items())})")
         if now - self._fault_logged_at.get(kind, -FAULT_LOG_PERIOD_S) >= FAULT_LOG_PERIOD_S:
             self._fault_logged_at[kind] = now
             log.warning(message, source=self.source, fault=kind, count=count, **fields)
@@ -238,7 +241,8 @@ class CaptureThread(threading.Thread):
         """Check one frame from the driver; False: dropped (counted and logged)."""
         # Every frame received counts for the ids, good or bad (a bad frame is not a lost one).
         last_id, self._last_frame_id = self._last_frame_id, frame.frame_id
-        if last_id is not None and frame.frame_id != last_id + 1:
+        wrapped = last_id == GEV1_MAX_BLOCK_ID and frame.frame_id == 1
+        if last_id is not None and frame.frame_id != last_id + 1 and not wrapped:
             self._count_fault("frame_id_jump", "frame id jumped", previous=last_id, frame_id=frame.frame_id)
         image = frame.image
         if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:

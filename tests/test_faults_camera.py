@@ -215,3 +215,27 @@ def test_clock_step_back_restarts_the_timeline_and_resets_the_processor(run):
     assert "processor reset: the frame timeline restarted" in events(run)
     after = poses_after(run, "clock_step")
     assert after and after[-1]["timeline"] == 1  # poses resumed, on the new timeline
+
+
+def test_frame_checks_at_the_boundary_one_by_one():
+    from daemon.capture import CaptureThread
+    from daemon.frame_queue import LatestFrameSlot
+    from drivers.base import CameraSettings, Frame
+
+    capture = CaptureThread("test", CameraSettings(width=4, height=3), LatestFrameSlot(), threading.Event())
+    good = np.zeros((3, 4), np.uint8)
+
+    def frame(frame_id, stamp_ns, image=good):
+        return Frame(image, frame_id, stamp_ns, stamp_ns, 1000.0)
+
+    assert capture._accept(frame(65534, 100))
+    assert capture._accept(frame(65535, 200))
+    assert capture._accept(frame(1, 300))  # a GigE Vision 1 block id wrapping (skips 0): no jump
+    assert capture._accept(frame(5, 400))  # ids 2-4 never came: a jump
+    assert not capture._accept(frame(6, 400))  # same stamp: dropped
+    assert not capture._accept(frame(7, 500, good.astype(np.float32)))
+    assert not capture._accept(frame(8, 500, np.zeros((3, 4, 3), np.uint8)))
+    assert not capture._accept(frame(9, 500, np.zeros((4, 3), np.uint8)))  # transposed
+    assert capture._accept(frame(10, 500))
+    assert capture.faults() == {"bad_format": 2, "frame_id_jump": 1, "stamp_not_increasing": 1, "wrong_size": 1}
+    assert "size 3x4" in capture.last_fault[1] and "expected 4x3" in capture.last_fault[1]  # for status.detail
