@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import structlog
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -89,6 +90,14 @@ BAD_CONFIGS = {
     "bad endpoint": b'[zenoh]\nconnect = ["10.0.0.1:7447"]\n',
     "duplicate key": b'name = "a"\nname = "b"\n',
 }
+
+
+@pytest.fixture(autouse=True)
+def keep_logging_config():
+    """``main()`` configures structlog onto this test's captured stderr; put it back after."""
+    saved = structlog.get_config()
+    yield
+    structlog.configure(**saved)
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ import socket
 
 import numpy as np
 import pytest
+import structlog
 import zenoh
 from gv_fake import FAKE_GV_CAMERA, GvFake, gvcp_listening
 
@@ -29,6 +30,14 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.fixture(autouse=True)
+def keep_logging_config():
+    """``main()`` configures structlog onto this test's captured stderr; put it back after."""
+    saved = structlog.get_config()
+    yield
+    structlog.configure(**saved)
 
 
 @pytest.fixture(autouse=True)
@@ -65,6 +74,7 @@ def stand_in_daemon(port: int) -> tuple[zenoh.Session, object]:
 
 
 def doctor(capsys, config: str, *extra: str) -> tuple[int, dict[str, list[dict]]]:
+    capsys.readouterr()  # whatever the test itself logged
     code = main(["doctor", "--config", config, "--json", "--timeout", "0.5", *extra])
     report = json.loads(capsys.readouterr().out)
     assert report["ok"] == (code == 0)
