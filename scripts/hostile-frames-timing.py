@@ -26,6 +26,7 @@ import numpy as np  # noqa: E402
 from test_fuzz_images import TARGET, full_frames  # noqa: E402
 
 from calib.camera_info import paper_camera  # noqa: E402
+from daemon.logs import configure_logging  # noqa: E402
 from fakes import render_view  # noqa: E402
 from positioning.range_map import camera_on_sphere  # noqa: E402
 from positioning.single_frame import TargetPoseProcessor  # noqa: E402
@@ -36,6 +37,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
+    configure_logging("error", "console", stream=sys.stderr)  # stdout is the table
     calibration = paper_camera()
     frames = {"good view of the cube (reference)": render_view(camera_on_sphere(40.0, 30.0, 1.8), room=False, seed=11)}
     frames.update(full_frames())
