@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import socket
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from drivers.ownership import CameraLock
 from positioning.target import default_cube_yaml
 
 NAME = "doctortest"
+REPO = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
@@ -63,9 +65,9 @@ def write_setup(root, *, port: int, source: str = "aravis:Fake_1", serial: str =
     return str(root / "cubeloc.toml")
 
 
-def stand_in_daemon(port: int) -> tuple[zenoh.Session, object]:
+def stand_in_daemon(port: int, zenoh_file=None) -> tuple[zenoh.Session, object]:
     """A Zenoh peer listening where the daemon would, and its liveliness token."""
-    conf = zenoh.Config()
+    conf = zenoh.Config.from_file(str(zenoh_file)) if zenoh_file else zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
@@ -181,3 +183,26 @@ def test_gige_packet_size_on_the_gige_vision_fake(tmp_path, capsys):
     gige = checks["gige"][0]
     assert "Aravis-Fake-GV08" in gige["message"] and " lo" in gige["message"] and "MTU 65536" in gige["message"]
     assert levels(checks, "calibration") == {OK}  # serial GV08, 512x512 within the 2048x2048 sensor
+
+
+def test_zenoh_check_logs_in_with_the_daemons_credentials(tmp_path, capsys):
+    """With examples/zenoh-acl.json5 the probe must log in (user and password from the
+    file) and must not apply the daemon's access-control rules to itself."""
+    (tmp_path / "zenoh-credentials.txt").write_text("cubeloc:daemon-secret\n")
+    acl = tmp_path / "zenoh.json5"
+    acl.write_text((REPO / "examples" / "zenoh-acl.json5").read_text()
+                   .replace("/etc/cubeloc/", f"{tmp_path}/").replace("change-me-daemon-password", "daemon-secret"))
+    port = free_port()
+    config = write_setup(tmp_path, port=port)
+    with open(config, "a") as toml:
+        toml.write(f'config_file = "{acl}"\n')
+    daemon, _token = stand_in_daemon(port, acl)
+    try:
+        _, checks = doctor(capsys, config, "--fake")
+        acl.write_text(acl.read_text().replace('password: "daemon-secret"', 'password: "wrong"'))
+        _, refused = doctor(capsys, config, "--fake")
+    finally:
+        daemon.close()
+    assert levels(checks, "zenoh") == {OK} and "alive is there" in checks["zenoh"][0]["message"]
+    assert levels(refused, "zenoh") == {FAIL}  # a wrong password in the file: the fix names the credentials
+    assert "credentials" in refused["zenoh"][0]["fix"]
