@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import math
 import os
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -184,20 +186,24 @@ def test_config_naming_a_bad_file(tmp_path, capsys, good, key):
     assert_one_line_naming(*run_main(capsys, "run", "--config", str(config), "--check"), "run", junk)
 
 
-def test_bad_files_from_outside(tmp_path, cli, good):
-    """The same, as a user sees it: a fresh ``cubeloc`` process per verb."""
+def test_bad_files_from_outside(tmp_path, good):
+    """The same, as a user sees it: a fresh ``cubeloc`` process per verb (run side by side)."""
     junk = tmp_path / "junk.bin"
     junk.write_bytes(bytes(range(256)) * 4)
     nan_calib = tmp_path / "nan.yaml"
     nan_calib.write_bytes(BAD_CALIBRATIONS["NaN fx"])
-    for verb, argv, named in (
+    cases = (
         ("pose", ["pose", "--target", str(junk), "--calib", str(good / "camera.yaml"), str(good / "image.png")], junk),
         ("track", ["track", "--target", str(good / "target.yaml"), "--calib", str(nan_calib),
                    "--sequence", str(good / "seq"), "--out", str(tmp_path / "o.tum")], nan_calib),
         ("run", ["run", "--config", str(junk), "--check"], junk),
-    ):
-        result = cli(*argv, env={"PATH": "/usr/bin:/bin"}, cwd=Path(__file__).resolve().parents[1])
-        assert_one_line_naming(result.returncode, result.stdout, result.stderr, verb, named)
+    )
+    processes = [subprocess.Popen([sys.executable, "-m", "daemon.cli", *argv], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True, env={"PATH": "/usr/bin:/bin"},
+                                  cwd=Path(__file__).resolve().parents[1]) for _, argv, _ in cases]
+    for (verb, _, named), process in zip(cases, processes, strict=True):
+        out, err = process.communicate(timeout=120)
+        assert_one_line_naming(process.returncode, out, err, verb, named)
 
 
 # -- Hypothesis: valid documents mutated into junk -------------------------------------------
