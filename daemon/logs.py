@@ -16,8 +16,32 @@ import structlog
 LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
 
 
+class _CurrentStream:
+    """Writes to whatever ``sys.stdout`` (or ``sys.stderr``) is at the time of writing, not
+    at configuration: a caller that swaps it (pytest's capture, a CLI run in-process)
+    never leaves the loggers holding a closed file."""
+
+    def __init__(self, name: Literal["stdout", "stderr"]) -> None:
+        self._name = name
+
+    def _stream(self):
+        return getattr(sys, self._name)
+
+    def write(self, text: str) -> int:
+        return self._stream().write(text)
+
+    def flush(self) -> None:
+        self._stream().flush()
+
+    def isatty(self) -> bool:
+        return self._stream().isatty()
+
+
 def configure_logging(level: str = "info", fmt: Literal["auto", "json", "console"] = "auto", stream=None) -> None:
-    stream = stream if stream is not None else sys.stdout
+    if stream is None or stream is sys.stdout:
+        stream = _CurrentStream("stdout")
+    elif stream is sys.stderr:
+        stream = _CurrentStream("stderr")
     use_json = fmt == "json" or (fmt == "auto" and not stream.isatty())
     renderer = structlog.processors.JSONRenderer() if use_json else structlog.dev.ConsoleRenderer(colors=False)
     processors = [
