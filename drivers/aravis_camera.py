@@ -139,18 +139,6 @@ class AravisCamera(CameraBase):
 
     # -- protocol properties ---------------------------------------------------------
     @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def settings(self) -> CameraSettings:
-        return self._settings
-
-    @property
-    def stats(self) -> CaptureStats:
-        return self._stats
-
-    @property
     def features(self) -> FeatureMap | None:
         return self._features
 

@@ -141,7 +141,25 @@ class Camera(Protocol):
 
 
 class CameraBase:
-    """Shared context-manager behaviour for backends."""
+    """Shared behaviour for backends: the context manager, and the protocol's read-only
+    ``info``, ``settings`` and ``stats`` served from ``_info``, ``_settings`` and ``_stats``
+    (a backend that computes one overrides the property)."""
+
+    _info: DeviceInfo
+    _settings: CameraSettings
+    _stats: CaptureStats
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self._info
+
+    @property
+    def settings(self) -> CameraSettings:
+        return self._settings
+
+    @property
+    def stats(self) -> CaptureStats:
+        return self._stats
 
     def __enter__(self):
         self.open()

@@ -55,18 +55,6 @@ class ReplayCamera(CameraBase):
         self._pace_origin_ns = 0  # recorded time of the first frame after start()
 
     @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def settings(self) -> CameraSettings:
-        return self._settings
-
-    @property
-    def stats(self) -> CaptureStats:
-        return self._stats
-
-    @property
     def frame_count(self) -> int:
         return len(self._entries or ())
 

@@ -142,14 +142,6 @@ class SyntheticCamera(CameraBase):
             transport="synthetic",
         )
 
-    @property
-    def settings(self) -> CameraSettings:
-        return self._settings
-
-    @property
-    def stats(self) -> CaptureStats:
-        return self._stats
-
     def open(self) -> None:
         s = self._settings
         if (s.width, s.height) != (self.calibration.width, self.calibration.height) or s.offset_x or s.offset_y:
