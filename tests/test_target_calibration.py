@@ -112,3 +112,10 @@ def test_bad_inputs_are_one_line_and_exit_2(calibrated, capsys, tmp_path):
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "usable image" in err
     assert not (tmp_path / "out.yaml").exists()
+    # The first tag of the file fixes the frame: it must be in the images.
+    (tmp_path / "other.yaml").write_text("family: tag36h11\ncube: {side: 0.18, tag_size: 0.144, ids: [9, 1, 2, 3, 4, 5]}\n")
+    other = ["calibrate-target", "--target", str(tmp_path / "other.yaml"), "--calib", str(folder / "camera.yaml"),
+             "--out", str(tmp_path / "out.yaml"), "--images", str(folder / "views" / "view_0[0-5].png")]
+    assert main(other) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "tag 9" in err and "first tag" in err
