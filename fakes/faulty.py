@@ -89,8 +89,9 @@ class CyclingCamera(CameraBase):
         self._origin_ns = 0
         self._next = 0
         self._lock = threading.Lock()
-        self._stamp_index: dict[int, int] = {}  # stamp_ns -> image index, for ground truth
-        self._stamp_order: list[int] = []
+        # host time of frame 0 of every start (one per reconnect): ground truth from the
+        # stamp alone, with nothing kept per frame (a soak must not grow by its own hand)
+        self._origins: list[int] = []
 
     @property
     def info(self) -> DeviceInfo:
@@ -110,6 +111,8 @@ class CyclingCamera(CameraBase):
     def start(self) -> None:
         self._start_monotonic_ns = time.monotonic_ns()
         self._origin_ns = time.time_ns()
+        with self._lock:
+            self._origins.append(self._origin_ns)
         self._next = 0
         self._streaming = True
 
@@ -139,12 +142,6 @@ class CyclingCamera(CameraBase):
         self._stats.delivered += 1
         index = self.image_index(k)
         stamp_ns = self._origin_ns + k * self.period_ns
-        if self.poses is not None:
-            with self._lock:
-                self._stamp_index[stamp_ns] = index
-                self._stamp_order.append(stamp_ns)
-                while len(self._stamp_order) > 100_000:  # bounded, for long soaks
-                    self._stamp_index.pop(self._stamp_order.pop(0), None)
         return Frame(self.images[index], k, k * self.period_ns, stamp_ns, 5000.0)
 
     def ground_truth(self, stamp_ns: int) -> Transform | None:
@@ -152,8 +149,12 @@ class CyclingCamera(CameraBase):
         if self.poses is None:
             return None
         with self._lock:
-            index = self._stamp_index.get(stamp_ns)
-        return None if index is None else self.poses[index]
+            origins = list(self._origins)
+        for origin in reversed(origins):  # the latest start at or before the stamp
+            k, remainder = divmod(stamp_ns - origin, self.period_ns)
+            if k >= 0:
+                return self.poses[self.image_index(k)] if remainder == 0 else None
+        return None
 
     def stop(self) -> None:
         self._streaming = False
@@ -169,7 +170,7 @@ class FaultyCamera(CameraBase):
     def __init__(self, inner: Camera, faults: dict[int, Fault] | None = None) -> None:
         self.inner = inner
         self.faults = dict(faults or {})
-        self.log: list[tuple] = []  # ("fault", kind, frame number) / ("open",) / ("frame", stamp, id)
+        self.log: list[tuple] = []  # ("fault", kind, frame number) / ("open",): events, not frames
         self.frames = 0  # frames pulled from the inner camera
         self._silent_until = 0.0
         self._unplugged_until = 0.0
@@ -237,7 +238,6 @@ class FaultyCamera(CameraBase):
                                     stamp_ns=frame.stamp_ns - self._stamp_shift_ns)
         self._last_device_ns = frame.device_timestamp_ns
         self._last_stamp_ns = frame.stamp_ns
-        self.log.append(("frame", frame.stamp_ns, frame.frame_id))
         return frame
 
     def _inject(self, fault: Fault, frame: Frame, timeout_s: float) -> Frame:
