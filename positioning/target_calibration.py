@@ -227,10 +227,11 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
         models[v] = (ids, edge_model(nominal, ids, 4))
     n_free, n_views = len(free), len(views)
     size = 6 * (n_free + n_views)
-    sigma2, hessian, profiles = 0.0, np.eye(size), 0
+    sigma2, hessian, meat, profiles = 0.0, np.eye(size), np.zeros((size, size)), 0
     for iteration in range(iterations):
         hessian = np.zeros((size, size))
         gradient = np.zeros(size)
+        meat = np.zeros((size, size))
         squares, profiles = 0.0, 0
         for v, view in enumerate(views):
             ids, model = models[v]
@@ -268,6 +269,20 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
                     hessian[tag_cols, view_cols] += cross
                     hessian[view_cols, tag_cols] += cross.T
                     gradient[tag_cols] += tag_j[rows].T @ offset[rows]
+            # Per edge run, the gradient of its profiles: errors within one run (sampling,
+            # print) are shared, so the uncertainty counts runs, not profiles (sandwich).
+            runs = model.run_index[kept]
+            unique_runs, run_of = np.unique(runs, return_inverse=True)
+            run_gradient = np.zeros((len(unique_runs), size))
+            np.add.at(run_gradient[:, view_cols], run_of, camera_j * offset[:, None])
+            for t in free:
+                rows = which[kept] == t
+                if rows.any():
+                    slot = problem.tag_slot[t]
+                    block = np.zeros((len(unique_runs), 6))
+                    np.add.at(block, run_of[rows], tag_j[rows] * offset[rows, None])
+                    run_gradient[:, 6 * slot: 6 * slot + 6] += block
+            meat += run_gradient.T @ run_gradient
             squares += float(offset @ offset)
             profiles += len(offset)
         damped = hessian + 1e-9 * np.eye(size)
@@ -288,9 +303,11 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
         if progress:
             progress(f"edge iteration {iteration + 1}: {profiles} profiles, RMS {np.sqrt(squares / max(profiles, 1)):.3f} px")
     try:
-        covariance = sigma2 * np.linalg.inv(hessian)
+        inverse = np.linalg.inv(hessian)
     except np.linalg.LinAlgError:
-        covariance = sigma2 * np.linalg.pinv(hessian)
+        inverse = np.linalg.pinv(hessian)
+    # The larger of the two: white noise over all profiles, or the run-clustered sandwich.
+    covariance = np.maximum(sigma2 * inverse, inverse @ meat @ inverse)
     tags, refined_tags = [], []
     for tag, before in zip(nominal.tags, corners_result.tags, strict=True):
         if tag.tag_id not in free:
