@@ -93,14 +93,14 @@ def test_static_stability_over_100_frames_at_1_9_m():
     # Stability as the paper measures it (a camera at rest, truth unknown): RMSE of the
     # outputs about their mean, per axis; and their offset from the truth (bias).
     # Issue 9's goals: 0.07 mm per axis and 0.3 mm (measured 0.04-0.05 mm and 0.16 mm;
-    # the corners-only baseline 0.10-0.11 mm and 0.47 mm).
+    # the corners-only pose 0.09-0.10 mm and 0.26 mm here; its bias is not always larger
+    # than the edges' at other views: 0.06-0.17 mm for both, so only the RMSE is compared).
     rmse_per_axis = np.sqrt(np.mean((positions - positions.mean(axis=0)) ** 2, axis=0))
     bias = np.linalg.norm(positions.mean(axis=0) - truth.translation)
     assert np.all(rmse_per_axis <= 0.07e-3), rmse_per_axis
     assert bias <= 0.3e-3, bias
     baseline_rmse = np.sqrt(np.mean((baseline - baseline.mean(axis=0)) ** 2, axis=0))
     assert np.linalg.norm(rmse_per_axis) * 1.5 <= np.linalg.norm(baseline_rmse)
-    assert bias * 1.5 <= np.linalg.norm(baseline.mean(axis=0) - truth.translation)
     assert regions == 99  # every frame after the first searched the predicted region only
     # The covariance the pose carries matches the scatter (within a factor of 2).
     predicted = np.sqrt(np.diag(result.estimate.covariance)[:3])
