@@ -13,6 +13,9 @@ the corner between the +x and -y faces, so three faces are in view.
 ``room_walk``   a walk round the room at ~0.6 m/s looking ahead, the cube out of view for
                 most of it (>= 20 s), back in view at the end; the walk is spread over the
                 whole ``seconds`` (at least 30)
+``spin``        4 s sliding 0.4 m sideways while looking at the cube (parallax to initialise),
+                then a full turn on the spot (pure rotation, no parallax at all) over
+                ``seconds`` - 6 s (at least 8), then 2 s held, looking at the cube again
 ==============  ===========================================================================
 
 Poses are smooth: positions and angles are clamped cubic splines through keyframes (zero
@@ -30,7 +33,7 @@ from positioning.trajectory_io import StampedPose
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 DEFAULT_FPS = 10.0
-DEFAULT_SECONDS = {"static": 10.0, "orbit": 40.0, "paper": 30.0, "room_walk": 40.0}
+DEFAULT_SECONDS = {"static": 10.0, "orbit": 40.0, "paper": 30.0, "room_walk": 40.0, "spin": 20.0}
 TRAJECTORIES = tuple(DEFAULT_SECONDS)
 ROOM_WALK_MIN_SECONDS = 30.0
 START_POSITION = np.array([1.5, -1.5, 0.91])  # ~2.3 m from the cube centre, 1 m above the floor
@@ -125,7 +128,24 @@ def _room_walk(times: np.ndarray, seconds: float) -> list[Transform]:
     return poses
 
 
-_MAKERS = {"static": _static, "orbit": _orbit, "paper": _paper, "room_walk": _room_walk}
+def _spin(times: np.ndarray, seconds: float) -> list[Transform]:
+    if seconds < 14.0:
+        raise TrajectoryError(f"spin needs --seconds of at least 14 (got {seconds:g}): 4 s to initialise, "
+                              "a turn of at least 8 s, 2 s held")
+    yaw0, pitch = _heading_to(START_POSITION, np.zeros(3))
+    side = np.array([-np.sin(yaw0), np.cos(yaw0), 0.0])  # horizontal, across the line of sight
+    stop = START_POSITION + 0.4 * side
+    yaw1, pitch1 = _heading_to(stop, np.zeros(3))
+    slide = _spline(np.array([[0.0, *START_POSITION, yaw0, pitch], [4.0, *stop, yaw1, pitch1]]), times)
+    turn = _spline(np.array([[4.0, 0.0], [seconds - 2.0, 2 * np.pi]]), times)[:, 0]
+    poses = []
+    for t, row, extra in zip(times, slide, turn, strict=True):
+        position, yaw, tilt = (row[:3], row[3], row[4]) if t < 4.0 else (stop, yaw1 + extra, pitch1)
+        poses.append(camera_from_yaw_pitch(position, yaw, tilt))
+    return poses
+
+
+_MAKERS = {"static": _static, "orbit": _orbit, "paper": _paper, "room_walk": _room_walk, "spin": _spin}
 
 
 def make_trajectory(name: str, seconds: float | None = None, fps: float | None = None) -> list[StampedPose]:
