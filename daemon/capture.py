@@ -91,6 +91,7 @@ class CaptureThread(threading.Thread):
         self._fault_logged_at: dict[str, float] = {}
         self._camera_counts_before: collections.Counter = collections.Counter()  # closed cameras
         self.last_fault: tuple[float, str] | None = None  # (monotonic time, what) of the last dropped frame
+        self.last_accepted: float | None = None  # monotonic time of the last frame passed on
         self.heartbeat = time.monotonic()  # last time the loop was seen alive
         self.ended = threading.Event()
         self.streaming = threading.Event()
@@ -234,6 +235,7 @@ class CaptureThread(threading.Thread):
             seq = self._next_seq
             self._next_seq += 1
             restart, self._restart_next = self._restart_next, False
+            self.last_accepted = time.monotonic()
             self._slot.put(CapturedFrame(frame, seq, time.monotonic_ns(), restart=restart))
         return "stopped"
 

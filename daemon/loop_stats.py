@@ -30,7 +30,6 @@ class LoopStats:
         self.last_detail = ""
         self.last_tags: tuple[int, ...] = ()
         self.last_seq = -1
-        self.last_frame_monotonic: float | None = None  # when the last frame was processed
         # Per-second summary counters (reset by ``take_summary``).
         self._summary = collections.Counter()
 
@@ -40,7 +39,6 @@ class LoopStats:
             self.frames += 1
             self.last_seq = seq
             self.last_status, self.last_detail, self.last_tags = status, detail, tags
-            self.last_frame_monotonic = now
             self._frame_times.append(now)
             while self._frame_times and now - self._frame_times[0] > FPS_WINDOW_S:
                 self._frame_times.popleft()

@@ -32,7 +32,7 @@ from positioning.estimator import FrameProcessor
 log = structlog.get_logger()
 
 JOIN_TIMEOUT_S = 1.0
-BAD_FRAMES_WINDOW_S = 1.0  # status says "bad_frames" while frames are dropped and none processed
+BAD_FRAMES_WINDOW_S = 1.0  # status says "bad_frames" while frames arrive and all are dropped
 
 
 class Daemon:
@@ -142,10 +142,11 @@ class Daemon:
         )
 
     def _only_bad_frames(self, last_fault_at: float) -> bool:
-        """Frames dropped at the camera boundary lately, and none processed since a while."""
+        """Frames dropped at the camera boundary lately, and none passed on for a while
+        (whatever the processor's speed: a slow frame is not a bad one)."""
         now = time.monotonic()
-        last_frame = self.stats.last_frame_monotonic
-        return now - last_fault_at < BAD_FRAMES_WINDOW_S and (last_frame is None or now - last_frame > BAD_FRAMES_WINDOW_S)
+        accepted = self.capture.last_accepted
+        return now - last_fault_at < BAD_FRAMES_WINDOW_S and (accepted is None or now - accepted > BAD_FRAMES_WINDOW_S)
 
     def _publish_status(self) -> StatusReport:
         report = self.report()

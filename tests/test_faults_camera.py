@@ -20,7 +20,7 @@ from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
 from fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
 
-FPS = 20.0
+FPS = 30.0
 WRONG_POSITION_M = 0.02
 WRONG_ANGLE_DEG = 1.0
 SCHEDULE = {  # frame number -> fault
@@ -33,7 +33,7 @@ SCHEDULE = {  # frame number -> fault
     34: Fault("timeout", seconds=0.5),  # one timeout (frame_timeout_s 0.3): no reconnect
     44: Fault("timeout", seconds=1.6),  # three timeouts in a row: the camera is reopened
     60: Fault("unplug", seconds=1.0),  # StreamBroken, then no such device for a second
-    80: Fault("wrong_format", count=50),  # 2.5 s of nothing usable: status says so
+    80: Fault("wrong_format", count=50),  # 1.7 s of nothing usable: status says so
     150: Fault("clock_step", seconds=30.0),  # the host clock stepped back (NTP)
 }
 LAST_FRAME = 190

@@ -28,7 +28,7 @@ from drivers.sequence import SequenceWriter, read_mono_png, read_sequence_index
 from fakes.board_views import board_views, synthetic_board_camera
 from tests.conftest import REPO
 
-KILLS = 30
+KILLS = 24
 SEED = 8
 
 
@@ -76,7 +76,7 @@ def test_kill_9_at_random_moments_during_calibration_save_leaves_the_old_or_the_
             version = 3 - version  # 2, 1, 2, ...: every save replaces the file with the other
 
     for _ in range(KILLS):
-        kill_child_at_random(save_forever, rng, max_delay_s=0.12)  # a few saves
+        kill_child_at_random(save_forever, rng, max_delay_s=0.08)  # a few saves
         text = path.read_text()
         assert text in versions.values(), "a broken calibration file after kill -9"
         loaded = read_camera_info(path)  # and the reader agrees
@@ -115,7 +115,7 @@ def board_sequence(tmp_path_factory):
     sequence = tmp_path_factory.mktemp("boards") / "seq"
     board = "chessboard:9x6:0.025"  # renders in a fraction of the time a ChArUco board takes
     # supersample 1: the ray grid of a finer one alone takes seconds to build
-    views = board_views(parse_board(board), synthetic_board_camera(640, 512), 8, seed=6, supersample=1)
+    views = board_views(parse_board(board), synthetic_board_camera(480, 384), 8, seed=6, supersample=1)
     with SequenceWriter(sequence) as writer:
         for index, view in enumerate(views, start=1):
             writer.write(1_700_000_000_000_000_000 + index * 100_000_000, view.image)

@@ -186,8 +186,8 @@ def test_stalled_subscriber_never_blocks_the_loop(running, tmp_path):
         assert baseline >= 5
         slow.send_signal(signal.SIGSTOP)  # it stops reading altogether: its window fills
         stalled_at = time.monotonic()
-        during = daemon.frames_during(4.0)
-        assert during >= 0.5 * 2 * baseline, (baseline, during)
+        during = daemon.frames_during(3.0)
+        assert during >= 0.5 * 1.5 * baseline, (baseline, during)
         # the healthy subscriber kept getting poses all along
         assert sum(1 for t in poses if t > stalled_at) >= 0.5 * during
         slow.send_signal(signal.SIGCONT)
