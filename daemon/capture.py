@@ -48,7 +48,9 @@ log = structlog.get_logger()
 POLL_S = 0.25
 FAULT_LOG_PERIOD_S = 10.0
 STAMP_RESTART_FRAMES = 3
-CAMERA_COUNTERS = ("incomplete", "bad_timestamp", "frame_id_gaps", "timeouts")
+# The backends' own counters shown on status ("timeouts" is not: the backends count every
+# short poll of this thread that found no frame; frame_timeout above is the real one).
+CAMERA_COUNTERS = ("incomplete", "bad_timestamp", "frame_id_gaps")
 DROPPED_KINDS = ("bad_format", "wrong_size", "stamp_not_increasing")  # the faults that drop the frame
 GEV1_MAX_BLOCK_ID = 0xFFFF  # GigE Vision 1 block ids are 16-bit and skip 0 when they wrap
 

@@ -93,18 +93,6 @@ class CyclingCamera(CameraBase):
         # stamp alone, with nothing kept per frame (a soak must not grow by its own hand)
         self._origins: list[int] = []
 
-    @property
-    def info(self) -> DeviceInfo:
-        return self._info
-
-    @property
-    def settings(self) -> CameraSettings:
-        return self._settings
-
-    @property
-    def stats(self) -> CaptureStats:
-        return self._stats
-
     def open(self) -> None:
         pass
 
