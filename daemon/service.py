@@ -24,7 +24,7 @@ from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
 from daemon.preflight import Prepared, make_processor
 from daemon.publisher import ZenohPublisher
 from daemon.sdnotify import SystemdNotifier
-from daemon.zenoh_session import open_session
+from daemon.zenoh_session import ZenohUnreachable, open_session
 from drivers.base import Camera, CameraSettings
 from drivers.registry import make_camera
 from positioning.estimator import FrameProcessor
@@ -69,7 +69,10 @@ class Daemon:
     def run(self) -> int:
         """Run until ``stop`` is set or a finite source ends. Returns the exit code."""
         config = self.config
-        session = open_session(config.zenoh, purpose="daemon")
+        session = self._open_session()
+        if session is None:  # stopped while waiting for the Zenoh router
+            self.notifier.close()
+            return 0
         status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
         try:
             loop = ProcessingLoop(
@@ -91,6 +94,21 @@ class Daemon:
         if self.capture.failure is not None:
             raise self.capture.failure
         return 0
+
+    def _open_session(self):
+        """The Zenoh session; in client mode, wait for the router with back-off (at boot it
+        may not be up yet: exiting would be exit 2, which systemd does not restart)."""
+        delay = self.config.daemon.reconnect_initial_s
+        while True:
+            try:
+                return open_session(self.config.zenoh, purpose="daemon")
+            except ZenohUnreachable as exc:
+                log.warning("zenoh router unreachable, retrying", error=str(exc), retry_in_s=round(delay, 2))
+                self.notifier.status("waiting for the Zenoh router")
+                self.notifier.watchdog()  # before READY: extends the start timeout
+                if self.stop.wait(delay):
+                    return None
+                delay = min(delay * 2, self.config.daemon.reconnect_max_s)
 
     def _shutdown(self, session, status_thread: threading.Thread) -> None:
         started = time.monotonic()

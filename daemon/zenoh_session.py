@@ -30,6 +30,12 @@ log = structlog.get_logger()
 IP_PROTOCOLS = {"tcp", "udp", "tls", "quic", "ws"}
 
 
+class ZenohUnreachable(ConfigError):
+    """Client mode and no router answers on any ``connect`` endpoint. For a one-shot verb
+    this is a user error like any other; the daemon waits for the router instead (it may
+    simply not be up yet at boot)."""
+
+
 def zenoh_error_text(exc: BaseException) -> str:
     """Zenoh's message without the Rust source location, on one line."""
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -152,6 +158,10 @@ def open_session(settings: ZenohConfig, purpose: str = "daemon") -> zenoh.Sessio
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
         where = ", ".join((*settings.listen, *settings.connect)) or "default endpoints"
+        if settings.mode == "client" and "Unable to connect" in str(exc):
+            raise ZenohUnreachable(
+                f"no Zenoh router answers on {where}: {zenoh_error_text(exc)}; is the router running?"
+            ) from None
         raise ConfigError(
             f"cannot open the Zenoh session ({settings.mode}, {where}): {zenoh_error_text(exc)}; "
             "check the endpoints (is the port in use?) and the Zenoh config file"

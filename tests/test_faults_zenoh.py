@@ -17,6 +17,7 @@ import threading
 import time
 
 import pytest
+import structlog
 
 from bench.soak import free_port, make_prepared
 from daemon.sdnotify import SystemdNotifier
@@ -88,7 +89,7 @@ def wait_for(predicate, timeout_s: float = 30.0) -> bool:
 
 
 class RunningDaemon:
-    def __init__(self, tmp_path, zenoh_settings: dict) -> None:
+    def __init__(self, tmp_path, zenoh_settings: dict, wait_serving: bool = True) -> None:
         images, poses = orbit_frames(6, room=False)
         self.camera = CyclingCamera(images, poses, fps=FPS, name="zenoh")
         port = free_port()
@@ -106,7 +107,13 @@ class RunningDaemon:
         self.outcome: dict = {}
         self.thread = threading.Thread(target=lambda: self.outcome.setdefault("code", self.daemon.run()), daemon=True)
         self.thread.start()
-        assert self.daemon.serving.wait(30)
+        if wait_serving:
+            assert self.daemon.serving.wait(30)
+
+    @staticmethod
+    def starting(running, zenoh_settings: dict) -> RunningDaemon:
+        """A daemon not expected to serve yet (``running`` builds and cleans it up)."""
+        return running(zenoh_settings, wait_serving=False)
 
     def frames_during(self, seconds: float, action=None) -> int:
         """Frames the loop processed in ``seconds`` (after ``action``, if any)."""
@@ -127,8 +134,8 @@ class RunningDaemon:
 def running(tmp_path):
     made = []
 
-    def start(zenoh_settings):
-        made.append(RunningDaemon(tmp_path, zenoh_settings))
+    def start(zenoh_settings, wait_serving=True):
+        made.append(RunningDaemon(tmp_path, zenoh_settings, wait_serving))
         return made[-1]
 
     yield start
@@ -167,6 +174,34 @@ def test_router_killed_and_restarted_poses_resume_and_the_loop_never_waits(runni
         robot.close()
         end_process(router)
         assert daemon.close() == 0
+
+
+def test_client_daemon_waits_for_a_router_that_is_not_up_yet(running):
+    # Client mode: Zenoh will not open a session without a router. Exiting would be exit
+    # 2, which the systemd unit does not restart (RestartPreventExitStatus=2): at boot the
+    # daemon would stay down for good. It waits for the router instead.
+    router_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with structlog.testing.capture_logs() as logs:
+        daemon = RunningDaemon.starting(running, {"mode": "client", "connect": [router_endpoint]})
+        assert wait_for(lambda: sum(e["event"] == "zenoh router unreachable, retrying" for e in logs) >= 2, 20)
+    assert daemon.thread.is_alive()  # waiting, not failed
+    router = helper_process(ROUTER, router_endpoint)
+    robot = session_to(router_endpoint, mode="client")
+    poses: list[dict] = []
+    robot.declare_subscriber("cubeloc/zfault/pose", lambda s: poses.append(json.loads(s.payload.to_bytes())))
+    try:
+        assert daemon.daemon.serving.wait(30)
+        assert wait_for(lambda: len(poses) >= 3), "no poses once the router was up"
+    finally:
+        robot.close()
+        assert daemon.close() == 0
+        end_process(router)
+
+
+def test_client_daemon_stopped_while_waiting_for_the_router_exits_0(running):
+    daemon = RunningDaemon.starting(running, {"mode": "client", "connect": [f"tcp/127.0.0.1:{free_port()}"]})
+    assert not daemon.daemon.serving.wait(1.0)
+    assert daemon.close() == 0
 
 
 def test_stalled_subscriber_never_blocks_the_loop(running, tmp_path):
