@@ -70,8 +70,9 @@ def _detect_charuco(image: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, np
 
 
 def _detect_chessboard(image: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, np.ndarray] | None:
-    # The classic detector refined by cornerSubPix is several times more accurate here
-    # than findChessboardCornersSB (measured on rendered views: 0.1 px against 0.6 px).
+    # The classic detector refined by cornerSubPix, then by a fit of the corner's model
+    # (``_fit_x_junctions``), is several times more accurate here than
+    # findChessboardCornersSB (measured on rendered views: 0.03 px against 0.6 px).
     pattern = board.inner_corners
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     ok, corners = cv2.findChessboardCorners(image, pattern, flags=flags)
@@ -85,10 +86,120 @@ def _detect_chessboard(image: np.ndarray, board: BoardSpec) -> tuple[np.ndarray,
     half = int(np.clip(0.15 * spacing, 3, 8))
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
     refined = cv2.cornerSubPix(image, corners.reshape(-1, 1, 2).copy(), (half, half), (-1, -1), criteria)
-    corners = refined.reshape(-1, 2)
+    corners = _fit_x_junctions(image, refined.reshape(-1, 2), pattern)
     if not _grid_is_regular(corners, board):
         return None
     return corners, np.arange(pattern[0] * pattern[1])
+
+
+FIT_RADIUS_SPACING = 0.35  # fit window radius, as a fraction of the distance to the nearest corner
+FIT_RADIUS_PX = (3.0, 12.0)  # ... clipped to this
+FIT_ITERATIONS = 12
+
+
+def _fit_x_junctions(image: np.ndarray, corners: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
+    """Chessboard corners refined by fitting each one's model to the pixels around it.
+
+    cornerSubPix reads the image between pixels by bilinear interpolation; on sharp
+    edges (a good lens, 1280 px wide) that leaves an error of up to 0.3 px that depends
+    on where the corner falls within its pixel (RMS 0.05 px, measured on rendered views),
+    and it is the same from view to view only by chance: enough to move a 25-view
+    solve's principal point by 1.5 px. Here the pixels themselves are fitted, by
+    Gauss-Newton, with a blurred X-junction: two straight lines through the corner
+    c (the grid lines, any angle: perspective keeps them straight), and
+    I = m + a * erf(d1 / (sqrt(2) s)) * erf(d2 / (sqrt(2) s)), d1, d2 the signed distances
+    to the lines. All corners are solved at once. A corner whose fit fails (moves more
+    than 1 px, or does not converge: a blurred or partly hidden corner) keeps its
+    cornerSubPix position.
+    """
+    from scipy.special import erf
+
+    cols, rows = pattern
+    start = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    grid = start.reshape(rows, cols, 2)
+    along_row = np.gradient(grid, axis=1).reshape(-1, 2)
+    along_col = np.gradient(grid, axis=0).reshape(-1, 2)
+    nearest = np.full((rows, cols), np.inf)
+    row_gap = np.linalg.norm(np.diff(grid, axis=1), axis=-1)
+    col_gap = np.linalg.norm(np.diff(grid, axis=0), axis=-1)
+    nearest[:, :-1] = np.minimum(nearest[:, :-1], row_gap)
+    nearest[:, 1:] = np.minimum(nearest[:, 1:], row_gap)
+    nearest[:-1] = np.minimum(nearest[:-1], col_gap)
+    nearest[1:] = np.minimum(nearest[1:], col_gap)
+    radius = np.clip(FIT_RADIUS_SPACING * nearest.ravel(), *FIT_RADIUS_PX)
+
+    reach = int(np.ceil(FIT_RADIUS_PX[1]))
+    offsets = np.arange(-reach, reach + 1)
+    dy_grid, dx_grid = np.meshgrid(offsets, offsets, indexing="ij")
+    centre = np.rint(start).astype(np.int64)
+    xs = centre[:, :1] + dx_grid.ravel()[None]  # (N, P) pixel columns
+    ys = centre[:, 1:] + dy_grid.ravel()[None]
+    height, width = image.shape
+    inside = (xs >= 0) & (xs < width) & (ys >= 0) & (ys < height)
+    values = image[np.clip(ys, 0, height - 1), np.clip(xs, 0, width - 1)].astype(np.float64)
+    weights = (inside & ((xs - start[:, :1]) ** 2 + (ys - start[:, 1:]) ** 2 <= radius[:, None] ** 2)).astype(np.float64)
+
+    # parameters per corner: cx, cy, angle of line 1, angle of line 2, log blur, m, a
+    params = np.column_stack([
+        start,
+        np.arctan2(along_row[:, 1], along_row[:, 0]),
+        np.arctan2(along_col[:, 1], along_col[:, 0]),
+        np.zeros(len(start)),
+        np.zeros(len(start)),
+        np.zeros(len(start)),
+    ])
+    root_pi = 2.0 / np.sqrt(np.pi)
+    step = np.zeros_like(params)
+    for iteration in range(FIT_ITERATIONS):
+        dx = xs - params[:, :1]
+        dy = ys - params[:, 1:2]
+        sin1, cos1 = np.sin(params[:, 2:3]), np.cos(params[:, 2:3])
+        sin2, cos2 = np.sin(params[:, 3:4]), np.cos(params[:, 3:4])
+        d1 = cos1 * dy - sin1 * dx
+        d2 = cos2 * dy - sin2 * dx
+        k = 1.0 / (np.sqrt(2.0) * np.exp(params[:, 4:5]))
+        e1, e2 = erf(d1 * k), erf(d2 * k)
+        product = e1 * e2
+        if iteration == 0:  # m and a by linear least squares for the starting geometry
+            sw, sp = weights.sum(1), (weights * product).sum(1)
+            spp, si = (weights * product**2).sum(1), (weights * values).sum(1)
+            spi = (weights * product * values).sum(1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                params[:, 6] = (sw * spi - sp * si) / (sw * spp - sp**2)
+                params[:, 5] = (si - params[:, 6] * sp) / sw
+        m, a = params[:, 5:6], params[:, 6:7]
+        residual = values - (m + a * product)
+        g1 = root_pi * np.exp(-((d1 * k) ** 2)) * k  # d erf(d1 k) / d d1
+        g2 = root_pi * np.exp(-((d2 * k) ** 2)) * k
+        jacobian = np.stack([
+            a * (g1 * sin1 * e2 + e1 * g2 * sin2),
+            -a * (g1 * cos1 * e2 + e1 * g2 * cos2),
+            -a * g1 * (cos1 * dx + sin1 * dy) * e2,
+            -a * e1 * g2 * (cos2 * dx + sin2 * dy),
+            -a * (g1 * d1 * e2 + e1 * g2 * d2),
+            np.ones_like(product),
+            product,
+        ], axis=-1)
+        weighted = jacobian * weights[..., None]
+        normal = np.einsum("npi,npj->nij", weighted, jacobian) + 1e-9 * np.eye(7)
+        gradient = np.einsum("npi,np->ni", weighted, residual)
+        with np.errstate(all="ignore"):
+            try:
+                step = np.linalg.solve(normal, gradient[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                return start.astype(np.float32)
+        step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
+        step[:, 2:4] = np.clip(step[:, 2:4], -0.2, 0.2)
+        params = params + step
+        params[:, 4] = np.clip(params[:, 4], np.log(0.3), np.log(6.0))  # blur sigma 0.3 .. 6 px
+    fitted = params[:, :2]
+    good = (
+        np.isfinite(fitted).all(axis=1)
+        & (np.abs(step[:, :2]).max(axis=1) < 1e-3)
+        & (np.linalg.norm(fitted - start, axis=1) < 1.0)
+        & (weights.sum(1) >= 12)
+    )
+    return np.where(good[:, None], fitted, start).astype(np.float32)
 
 
 def _blob_detector(image_shape: tuple[int, int]) -> cv2.SimpleBlobDetector:
