@@ -181,8 +181,8 @@ def _fit_x_junctions(image: np.ndarray, corners: np.ndarray, pattern: tuple[int,
             product,
         ], axis=-1)
         weighted = jacobian * weights[..., None]
-        normal = np.einsum("npi,npj->nij", weighted, jacobian) + 1e-9 * np.eye(7)
-        gradient = np.einsum("npi,np->ni", weighted, residual)
+        normal = np.matmul(weighted.transpose(0, 2, 1), jacobian) + 1e-9 * np.eye(7)
+        gradient = np.matmul(weighted.transpose(0, 2, 1), residual[..., None])[..., 0]
         with np.errstate(all="ignore"):
             try:
                 step = np.linalg.solve(normal, gradient[..., None])[..., 0]
@@ -192,6 +192,8 @@ def _fit_x_junctions(image: np.ndarray, corners: np.ndarray, pattern: tuple[int,
         step[:, 2:4] = np.clip(step[:, 2:4], -0.2, 0.2)
         params = params + step
         params[:, 4] = np.clip(params[:, 4], np.log(0.3), np.log(6.0))  # blur sigma 0.3 .. 6 px
+        if np.abs(step[:, :2]).max() < 1e-4:  # every corner has settled
+            break
     fitted = params[:, :2]
     good = (
         np.isfinite(fitted).all(axis=1)
