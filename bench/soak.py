@@ -14,9 +14,11 @@ a warm-up (a tenth of the run, at most 3 minutes):
 * RSS: the largest sample after the warm-up is < 5 % above the sample at its end;
 * threads and fds: at the end no more than at the end of the warm-up (+1 for Zenoh's
   lazily started workers);
-* frame rate: the last quarter's processing rate >= 90 % of the first quarter's (no
-  slow-down over time); the rate itself (the processor's speed on a shared machine; the
-  newest-frame slot drops what it cannot take) is reported;
+* no slow-down: the process' CPU time per frame processed in the last quarter <= 115 %
+  of the first quarter's (a growing map or list would show here). CPU time, not the frame
+  rate, because the rate on a shared machine follows the other users' load; the rate per
+  quarter is reported alongside (the newest-frame slot drops what the processor cannot
+  take);
 * poses: none off the ground truth by more than 2 cm or 1 degree, stamps strictly
   increasing, and the daemon ends with exit code 0.
 
@@ -30,6 +32,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import socket
 import statistics
 import sys
@@ -55,6 +58,7 @@ class Sample:
     fds: int
     frames: int
     poses: int
+    cpu_s: float = 0.0  # user + system CPU time of the whole process so far
 
 
 @dataclass
@@ -74,6 +78,7 @@ class SoakResult:
     exit_code: int | None = None
     processor: str = ""
     checks: dict[str, tuple[bool, str]] = field(default_factory=dict)
+    info: dict[str, str] = field(default_factory=dict)  # figures reported, not checked
 
     @property
     def ok(self) -> bool:
@@ -88,8 +93,9 @@ def _proc_status_kb(key: str) -> int:
 
 
 def process_sample(t_s: float, frames: int, poses: int) -> Sample:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
     return Sample(t_s, _proc_status_kb("VmRSS"), len(os.listdir("/proc/self/task")),
-                  len(os.listdir("/proc/self/fd")), frames, poses)
+                  len(os.listdir("/proc/self/fd")), frames, poses, usage.ru_utime + usage.ru_stime)
 
 
 def free_port() -> int:
@@ -262,13 +268,16 @@ def evaluate(result: SoakResult, error: BaseException | None = None) -> None:
                                   f"end {end.rss_kb / 1024:.1f} MiB ({100 * growth:+.2f} %)")
     checks["no thread leak"] = (end.threads <= warm.threads + 1, f"{warm.threads} -> {end.threads}")
     checks["no fd leak"] = (end.fds <= warm.fds + 1, f"{warm.fds} -> {end.fds}")
+    quarter = max(2, len(after) // 4)
+    head, tail = after[:quarter], after[-quarter:]
+    cpu_first, cpu_last = cpu_ms_per_frame(head), cpu_ms_per_frame(tail)
+    checks["no slow-down (CPU per frame)"] = (
+        cpu_last <= 1.15 * cpu_first,
+        f"{cpu_first:.1f} ms of CPU per frame in the first quarter, {cpu_last:.1f} in the last")
     rates = window_rates(after)
-    quarter = max(1, len(rates) // 4)
-    first, last = statistics.fmean(rates[:quarter]), statistics.fmean(rates[-quarter:])
-    checks["frame rate steady"] = (last >= 0.9 * first,
-                                   f"{first:.2f} fps in the first quarter, {last:.2f} in the last, "
-                                   f"min window {min(rates):.2f}, mean {statistics.fmean(rates):.2f} "
-                                   f"(camera {result.fps:g})")
+    result.info["frame rate"] = (
+        f"{rate(head):.2f} fps in the first quarter, {rate(tail):.2f} in the last, min window "
+        f"{min(rates):.2f}, mean {statistics.fmean(rates):.2f} (camera {result.fps:g}; shared 2-core machine)")
     checks["no wrong pose"] = (
         result.poses_received > 0 and result.wrong_poses == 0 and result.non_increasing_stamps == 0,
         f"{result.poses_received} poses, {result.wrong_poses} off the truth, "
@@ -277,6 +286,16 @@ def evaluate(result: SoakResult, error: BaseException | None = None) -> None:
     if result.unplugs:
         checks["recovers from every unplug"] = (result.reconnects >= result.unplugs,
                                                 f"{result.unplugs} unplugs, {result.reconnects} reconnects")
+
+
+def cpu_ms_per_frame(samples: list[Sample]) -> float:
+    frames = samples[-1].frames - samples[0].frames
+    return 1000 * (samples[-1].cpu_s - samples[0].cpu_s) / frames if frames > 0 else math.inf
+
+
+def rate(samples: list[Sample]) -> float:
+    span = samples[-1].t_s - samples[0].t_s
+    return (samples[-1].frames - samples[0].frames) / span if span > 0 else 0.0
 
 
 def window_rates(samples: list[Sample]) -> list[float]:
@@ -297,6 +316,7 @@ def report_markdown(result: SoakResult, command: str) -> str:
         ["poses published", first.poses, warm.poses, end.poses],
     ]
     checks = [[name, "pass" if ok else "FAIL", text] for name, (ok, text) in result.checks.items()]
+    checks += [[name, "(figure)", text] for name, text in result.info.items()]
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     return (
         "# Soak\n\n"
@@ -337,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
                       unplug_every_s=args.unplug_every or None, progress=progress)
     for name, (ok, text) in result.checks.items():
         print(f"{'pass' if ok else 'FAIL'}  {name}: {text}")
+    for name, text in result.info.items():
+        print(f"      {name}: {text}")
     if not args.no_write:
         command = "make soak" if args.minutes == 30 else f"python -m bench.soak --minutes {args.minutes:g}"
         atomic_write_text(SOAK_DOC, report_markdown(result, command))
