@@ -14,8 +14,8 @@ a warm-up (a tenth of the run, at most 3 minutes):
 * RSS: the largest sample after the warm-up is < 5 % above the sample at its end;
 * threads and fds: at the end no more than at the end of the warm-up (+1 for Zenoh's
   lazily started workers);
-* no slow-down: the process' CPU time per frame processed in the last quarter <= 115 %
-  of the first quarter's (a growing map or list would show here). CPU time, not the frame
+* no slow-down (runs of 5 minutes or more after the warm-up): the process' CPU time per
+  frame processed in the last quarter <= 115 % of the first quarter's (a growing map or list would show here). CPU time, not the frame
   rate, because the rate on a shared machine follows the other users' load; the rate per
   quarter is reported alongside (the newest-frame slot drops what the processor cannot
   take);
@@ -48,6 +48,7 @@ SOAK_DOC = Path(__file__).resolve().parents[1] / "docs" / "soak.md"
 WRONG_POSITION_M = 0.02
 WRONG_ANGLE_DEG = 1.0
 RSS_GROWTH_LIMIT = 0.05
+SLOWDOWN_MIN_S = 300.0  # the slow-down check needs quarters of at least a minute or so
 
 
 @dataclass
@@ -271,9 +272,11 @@ def evaluate(result: SoakResult, error: BaseException | None = None) -> None:
     quarter = max(2, len(after) // 4)
     head, tail = after[:quarter], after[-quarter:]
     cpu_first, cpu_last = cpu_ms_per_frame(head), cpu_ms_per_frame(tail)
-    checks["no slow-down (CPU per frame)"] = (
-        cpu_last <= 1.15 * cpu_first,
-        f"{cpu_first:.1f} ms of CPU per frame in the first quarter, {cpu_last:.1f} in the last")
+    cpu_text = f"{cpu_first:.1f} ms of CPU per frame in the first quarter, {cpu_last:.1f} in the last"
+    if end.t_s - warm.t_s >= SLOWDOWN_MIN_S:
+        checks["no slow-down (CPU per frame)"] = (cpu_last <= 1.15 * cpu_first, cpu_text)
+    else:  # quarters of seconds: a tracker's bundle adjustment more or less decides it
+        result.info["CPU per frame"] = cpu_text
     rates = window_rates(after)
     result.info["frame rate"] = (
         f"{rate(head):.2f} fps in the first quarter, {rate(tail):.2f} in the last, min window "

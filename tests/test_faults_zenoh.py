@@ -153,13 +153,13 @@ def test_router_killed_and_restarted_poses_resume_and_the_loop_never_waits(runni
     robot.declare_subscriber("cubeloc/zfault/pose", lambda s: poses.append((time.monotonic(), json.loads(s.payload.to_bytes()))))
     try:
         assert wait_for(lambda: len(poses) >= 5), "no poses through the router"
-        baseline = daemon.frames_during(2.0)
+        baseline = daemon.frames_during(1.5)
         assert baseline >= 5
         lost_at = time.monotonic()
         router.kill()  # the robot's router dies: every link through it drops at once
         router.wait(10)
         poses_before = daemon.daemon.stats.poses
-        during = daemon.frames_during(2.0)
+        during = daemon.frames_during(1.5)
         assert during >= 0.5 * baseline, (baseline, during)  # the loop did not wait for the network
         assert daemon.daemon.stats.poses > poses_before  # and kept positioning (publishing into the void)
         router = helper_process(ROUTER, router_endpoint)  # back, on the same port
@@ -217,12 +217,12 @@ def test_stalled_subscriber_never_blocks_the_loop(running, tmp_path):
     healthy.declare_subscriber("cubeloc/zfault/pose", lambda s: poses.append(time.monotonic()))
     try:
         assert wait_for(lambda: len(poses) >= 5)
-        baseline = daemon.frames_during(2.0)
+        baseline = daemon.frames_during(1.5)
         assert baseline >= 5
         slow.send_signal(signal.SIGSTOP)  # it stops reading altogether: its window fills
         stalled_at = time.monotonic()
         during = daemon.frames_during(3.0)
-        assert during >= 0.5 * 1.5 * baseline, (baseline, during)
+        assert during >= 0.5 * 2 * baseline, (baseline, during)
         # the healthy subscriber kept getting poses all along
         assert sum(1 for t in poses if t > stalled_at) >= 0.5 * during
         slow.send_signal(signal.SIGCONT)
@@ -235,7 +235,7 @@ def test_stalled_subscriber_never_blocks_the_loop(running, tmp_path):
 def test_a_crowd_of_subscribers_all_get_poses_and_the_loop_keeps_its_rate(running):
     daemon = running({"listen": [f"tcp/127.0.0.1:{free_port()}"]})
     endpoint = daemon.daemon.config.zenoh.listen[0]
-    baseline = daemon.frames_during(2.0)
+    baseline = daemon.frames_during(1.5)
     assert baseline >= 5
     sessions, counts = [], []
     try:
@@ -251,7 +251,7 @@ def test_a_crowd_of_subscribers_all_get_poses_and_the_loop_keeps_its_rate(runnin
 
                 session.declare_subscriber(key, bump)
             assert i < 11 or wait_for(lambda: min(counts) > 0)
-        during = daemon.frames_during(2.0)
+        during = daemon.frames_during(1.5)
         assert during >= 0.5 * baseline, (baseline, during)
         before = list(counts)
         assert wait_for(lambda: all(c > b for c, b in zip(counts, before, strict=True)))  # all still served
