@@ -179,7 +179,10 @@ def run() -> str:
                 key = r.estimate.state.value if r.estimate is not None else r.status
                 per_state.setdefault(key, []).append(t)
         split = ", ".join(f"{k} {1000 * np.median(v):.1f} ms (n={len(v)})" for k, v in sorted(per_state.items()))
+        load = os.getloadavg()[0]
         notes.append(
+            f"Load average {load:.1f} on {os.cpu_count()} cores at the end of these runs (a shared machine: "
+            f"the fps follows the others' load). "
             f"Throughput at 1280x1024, bundle adjustment in its worker thread, the paper sequence played "
             f"forwards and backwards, {THROUGHPUT_FRAMES} frames per run: **{np.median(fps):.1f} fps** sustained "
             f"(median of {runs} runs: {', '.join(f'{f:.1f}' for f in fps)}; wall time of the frame processor). "
