@@ -55,9 +55,9 @@ class ScriptedCamera(CameraBase):
         self._image, self._left, self._period_s, self._log = image, frames, period_s, log
         self._next = 0.0
         self._id = 0
-        self.stats = CaptureStats()
-        self.info = DeviceInfo("scripted", "test", "scripted", "0001", "fake")
-        self.settings = None
+        self._stats = CaptureStats()
+        self._info = DeviceInfo("scripted", "test", "scripted", "0001", "fake")
+        self._settings = None
 
     def open(self):
         self._log.append("open")
