@@ -23,7 +23,9 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO]:
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open supports 'w' and 'wb', not {mode!r}")
     target = Path(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    _remove_orphans(target)
+    # The writer's pid in the name lets a later writer recognise what a killed one left.
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.{os.getpid()}.", suffix=".tmp", dir=target.parent)
     try:
         # mkstemp makes the file private (0600); give it the mode a plain open() would,
         # so a calibration written by a technician stays readable by the daemon's user
@@ -38,6 +40,26 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO]:
             os.unlink(tmp_name)
         raise
     fsync_directory(target.parent)
+
+
+def _remove_orphans(target: Path) -> None:
+    """Delete temporary files of earlier writes to ``target`` whose writer process is gone
+    (``kill -9`` or a power cut mid-write): they were never renamed, so nothing needs them."""
+    for leftover in target.parent.glob(f".{target.name}.*.tmp"):
+        pid_text = leftover.name[len(target.name) + 2:].split(".", 1)[0]
+        if pid_text.isdigit() and not _process_alive(int(pid_text)):
+            with contextlib.suppress(OSError):
+                leftover.unlink()
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
 
 
 def _current_umask() -> int:

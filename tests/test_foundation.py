@@ -171,3 +171,24 @@ def test_ray_grid_inverts_opencv_projection_exactly():
     expected = np.column_stack([uu.ravel(), vv.ravel()])
     assert np.abs(uv.reshape(-1, 2) - expected).max() < 1e-6
     assert np.abs(project(rays, calibration) - expected).max() < 1e-6
+
+
+def test_atomic_write_removes_what_a_killed_writer_left(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from cubeloc.atomic import atomic_write_bytes
+
+    target = tmp_path / "camera.yaml"
+    target.write_bytes(b"old")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)
+    orphan = tmp_path / f".camera.yaml.{dead_pid}.abc123.tmp"  # a writer killed mid-write
+    orphan.write_bytes(b"half")
+    alive = tmp_path / f".camera.yaml.{os.getpid()}.xyz789.tmp"  # a write in progress elsewhere
+    alive.write_bytes(b"busy")
+    atomic_write_bytes(target, b"new")
+    assert target.read_bytes() == b"new"
+    assert not orphan.exists() and alive.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([target.name, alive.name])
