@@ -124,6 +124,11 @@ class Daemon:
             self._publisher.close()
         session.close()
         self.notifier.close()
+        # Last, after everything others can see has closed: the tracker waits for a
+        # bundle adjustment in flight (its worker thread would hold the exit anyway).
+        close_processor = getattr(self.processor, "close", None)
+        if close_processor is not None:
+            close_processor()
         log.info("daemon stopped", seconds=round(time.monotonic() - started, 3),
                  camera_closed=not self.capture.is_alive())
 

@@ -178,3 +178,10 @@ def test_a_tum_file_plays_as_a_trajectory_and_poses_outside_the_room_are_refused
     write_tum(path, outside)
     with pytest.raises(CameraNotFound, match="pose 0 at .* outside the synthetic room"):
         make_camera(f"synthetic:{path}")
+
+
+def test_simulate_offers_every_trajectory():
+    from daemon.commands.simulate import TRAJECTORY_NAMES
+    from fakes.trajectories import TRAJECTORIES
+
+    assert TRAJECTORY_NAMES == TRAJECTORIES

@@ -5,7 +5,8 @@ from __future__ import annotations
 import sys
 import time
 
-TRAJECTORY_NAMES = ("static", "orbit", "paper", "room_walk")  # fakes.trajectories.TRAJECTORIES
+# fakes.trajectories.TRAJECTORIES, spelled out so that --help needs no numpy import
+TRAJECTORY_NAMES = ("static", "orbit", "paper", "room_walk", "spin")
 
 
 def register(subparsers) -> None:
