@@ -46,7 +46,8 @@ lint: install
 	$(BIN)/ruff check .
 
 test: lint
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake'
+	$(BIN)/python -m pytest -q -m gv_fake
 
 bench: install
 	$(BIN)/python -m bench
