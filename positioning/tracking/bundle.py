@@ -221,10 +221,15 @@ def apply_solution(world_map: Map, solution: BundleSolution) -> bool:
     Keyframes and points culled meanwhile are skipped."""
     if solution.epoch != world_map.epoch:
         return False
+    newest, moved = -1, None  # the newest adjusted keyframe and how the adjustment moved it
     for kf_id, pose in zip(solution.kf_ids, solution.T_world_camera, strict=True):
         kf = world_map.keyframes.get(int(kf_id))
         if kf is not None:
+            if kf.kf_id > newest:
+                newest, moved = kf.kf_id, pose @ kf.T_world_camera.inverse()
             kf.T_world_camera = pose
+    if moved is not None:
+        _carry_along(world_map, newest, moved, set(int(p) for p in solution.point_ids))
     bad = set(int(p) for p in solution.bad_point_ids)
     for point_id, position in zip(solution.point_ids, solution.points, strict=True):
         pid = int(point_id)
@@ -235,3 +240,17 @@ def apply_solution(world_map: Map, solution: BundleSolution) -> bool:
         else:
             world_map.points[pid] = position
     return True
+
+
+def _carry_along(world_map: Map, newest: int, moved: Transform, solved_points: set[int]) -> None:
+    """A solution computed in the background lands after more keyframes and points were
+    built on the old poses: move those with the newest adjusted keyframe, so the map stays
+    consistent (old and new parts otherwise disagree by the whole correction)."""
+    for kf in world_map.keyframes.values():
+        if kf.kf_id > newest and not kf.anchored:
+            kf.T_world_camera = moved @ kf.T_world_camera
+    for track_id, birth in world_map.point_birth.items():
+        if birth > newest and track_id not in solved_points:
+            kf = world_map.keyframes.get(birth)
+            if kf is None or not kf.anchored:
+                world_map.points[track_id] = moved.apply(world_map.points[track_id][None])[0]
