@@ -8,7 +8,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import pytest
 from gv_fake import FAKE_GV_CAMERA, GvFake
+from helpers import free_port, wait_until
 
 from calib.camera_info import paper_camera, write_camera_info
 from positioning.target import default_cube_yaml
@@ -23,21 +23,6 @@ from positioning.target import default_cube_yaml
 REPO = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.skipif(shutil.which(FAKE_GV_CAMERA) is None, reason=f"{FAKE_GV_CAMERA} not installed (aravis-tools)")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(predicate, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return False
 
 
 def test_daemon_reconnects_when_the_gige_camera_restarts(tmp_path):

@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+from helpers import free_port
 
 from calib.camera_info import paper_camera, write_camera_info
 from fakes.trajectories import make_trajectory
@@ -22,12 +23,6 @@ from positioning.target import default_cube_yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SECONDS, FPS = 3.0, 5.0  # the start of the paper's path: the cube in view, ~2.3 m away
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def write_config(tmp_path, port: int) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import free_port, wait_until
 
 from calib.camera_info import paper_camera, write_camera_info
 from daemon.config import Config
@@ -40,12 +41,6 @@ CAMERA_POSITION = np.array([1.2, -1.0, 0.9])
 @pytest.fixture(scope="module")
 def cube_image():
     return render_view(look_at(CAMERA_POSITION, np.zeros(3)), room=False)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class ScriptedCamera(CameraBase):
@@ -131,12 +126,7 @@ class Listener:
         self.session.declare_subscriber("cubeloc/*/status", lambda s: self.status.append(json.loads(s.payload.to_bytes())))
 
     def wait_for(self, predicate, timeout_s=20.0):
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            time.sleep(0.05)
-        return False
+        return wait_until(predicate, timeout_s)
 
     def query(self, key):
         return [r.ok.payload.to_bytes() for r in self.session.get(key, timeout=5.0) if r.ok is not None]

@@ -17,6 +17,7 @@ import pytest
 import structlog
 import zenoh
 from gv_fake import FAKE_GV_CAMERA, GvFake, gvcp_listening
+from helpers import free_port
 
 from calib.camera_info import CameraCalibration, write_camera_info
 from daemon.cli import main
@@ -26,12 +27,6 @@ from positioning.target import default_cube_yaml
 
 NAME = "doctortest"
 REPO = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(autouse=True)

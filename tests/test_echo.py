@@ -3,24 +3,18 @@
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import time
 
 import numpy as np
 import pytest
+from helpers import free_port
 
 from daemon.messages import CameraStatus, StatusReport, pose_message, status_message
 from daemon.publisher import ZenohPublisher
 from positioning.estimator import PoseEstimate, PoseState
 from positioning.geometry import look_at
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import shutil
 import threading
-import time
 
 import pytest
+from helpers import wait_until
 
 from bench.soak import free_port, make_prepared
 from daemon.sdnotify import SystemdNotifier
@@ -75,15 +75,6 @@ class FaultyAravisCamera(AravisCamera):
     def unplug_usb(self) -> None:
         """What Aravis does when a USB3 Vision device vanishes: emit control-lost."""
         self._camera.get_device().emit("control-lost")
-
-
-def wait_until(predicate, timeout_s: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def thread_names() -> list[str]:

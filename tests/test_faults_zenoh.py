@@ -18,6 +18,7 @@ import time
 
 import pytest
 import structlog
+from helpers import wait_until
 
 from bench.soak import free_port, make_prepared
 from daemon.sdnotify import SystemdNotifier
@@ -77,15 +78,6 @@ def session_to(endpoint: str, mode: str = "peer"):
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     return zenoh.open(conf)
-
-
-def wait_for(predicate, timeout_s: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 class RunningDaemon:
@@ -152,7 +144,7 @@ def test_router_killed_and_restarted_poses_resume_and_the_loop_never_waits(runni
     poses: list[tuple[float, dict]] = []
     robot.declare_subscriber("cubeloc/zfault/pose", lambda s: poses.append((time.monotonic(), json.loads(s.payload.to_bytes()))))
     try:
-        assert wait_for(lambda: len(poses) >= 5), "no poses through the router"
+        assert wait_until(lambda: len(poses) >= 5), "no poses through the router"
         baseline = daemon.frames_during(1.5)
         assert baseline >= 5
         lost_at = time.monotonic()
@@ -164,7 +156,7 @@ def test_router_killed_and_restarted_poses_resume_and_the_loop_never_waits(runni
         assert daemon.daemon.stats.poses > poses_before  # and kept positioning (publishing into the void)
         router = helper_process(ROUTER, router_endpoint)  # back, on the same port
         back_at = time.monotonic()
-        assert wait_for(lambda: poses[-1][0] > back_at, 40), "poses did not resume after the router came back"
+        assert wait_until(lambda: poses[-1][0] > back_at, 40), "poses did not resume after the router came back"
         gap = [p for t, p in poses if lost_at <= t <= back_at]
         assert not gap  # nothing can arrive while the router is down
         seqs = [p["seq"] for _, p in poses]
@@ -183,7 +175,7 @@ def test_client_daemon_waits_for_a_router_that_is_not_up_yet(running):
     router_endpoint = f"tcp/127.0.0.1:{free_port()}"
     with structlog.testing.capture_logs() as logs:
         daemon = RunningDaemon.starting(running, {"mode": "client", "connect": [router_endpoint]})
-        assert wait_for(lambda: sum(e["event"] == "zenoh router unreachable, retrying" for e in logs) >= 2, 20)
+        assert wait_until(lambda: sum(e["event"] == "zenoh router unreachable, retrying" for e in logs) >= 2, 20)
     assert daemon.thread.is_alive()  # waiting, not failed
     router = helper_process(ROUTER, router_endpoint)
     robot = session_to(router_endpoint, mode="client")
@@ -191,7 +183,7 @@ def test_client_daemon_waits_for_a_router_that_is_not_up_yet(running):
     robot.declare_subscriber("cubeloc/zfault/pose", lambda s: poses.append(json.loads(s.payload.to_bytes())))
     try:
         assert daemon.daemon.serving.wait(30)
-        assert wait_for(lambda: len(poses) >= 3), "no poses once the router was up"
+        assert wait_until(lambda: len(poses) >= 3), "no poses once the router was up"
     finally:
         robot.close()
         assert daemon.close() == 0
@@ -216,7 +208,7 @@ def test_stalled_subscriber_never_blocks_the_loop(running, tmp_path):
     poses: list[float] = []
     healthy.declare_subscriber("cubeloc/zfault/pose", lambda s: poses.append(time.monotonic()))
     try:
-        assert wait_for(lambda: len(poses) >= 5)
+        assert wait_until(lambda: len(poses) >= 5)
         baseline = daemon.frames_during(1.5)
         assert baseline >= 5
         slow.send_signal(signal.SIGSTOP)  # it stops reading altogether: its window fills
@@ -250,11 +242,11 @@ def test_a_crowd_of_subscribers_all_get_poses_and_the_loop_keeps_its_rate(runnin
                     counts[index] += 1
 
                 session.declare_subscriber(key, bump)
-            assert i < 11 or wait_for(lambda: min(counts) > 0)
+            assert i < 11 or wait_until(lambda: min(counts) > 0)
         during = daemon.frames_during(1.5)
         assert during >= 0.5 * baseline, (baseline, during)
         before = list(counts)
-        assert wait_for(lambda: all(c > b for c, b in zip(counts, before, strict=True)))  # all still served
+        assert wait_until(lambda: all(c > b for c, b in zip(counts, before, strict=True)))  # all still served
     finally:
         for session in sessions:
             session.close()
