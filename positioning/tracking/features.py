@@ -57,9 +57,10 @@ class KltFrontEnd:
     def tracks(self) -> Tracks:
         return Tracks(self.ids.copy(), self.pixels.astype(np.float64))
 
-    def track(self, image: np.ndarray) -> Tracks:
+    def track(self, image: np.ndarray, guesses: np.ndarray | None = None) -> Tracks:
         """Follow the live tracks into ``image``; tracks that fail the forward-backward
-        check or leave the image end here."""
+        check or leave the image end here. ``guesses`` ((N, 2), one per live track, in the
+        order of ``tracks``) are where the motion model expects them: KLT starts there."""
         o = self.options
         # OpenCV 5's Python binding takes images only (no prebuilt pyramids), so each call
         # builds its own pyramid: a millisecond or two per image at 1280x1024.
@@ -71,13 +72,16 @@ class KltFrontEnd:
         window = (o.window_px, o.window_px)
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
         prev = self.pixels.reshape(-1, 1, 2)
+        guided = guesses is not None and np.shape(guesses) == (len(self.ids), 2)
+        start = np.asarray(guesses, np.float32).reshape(-1, 1, 2).copy() if guided else None
         forward, status, _ = cv2.calcOpticalFlowPyrLK(
-            self._previous, image, prev, None, winSize=window, maxLevel=o.pyramid_levels,
-            criteria=criteria,
+            self._previous, image, prev, start, winSize=window, maxLevel=o.pyramid_levels,
+            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW if guided else 0,
         )
+        # backwards from where they were: the check then costs few iterations
         backward, back_status, _ = cv2.calcOpticalFlowPyrLK(
-            image, self._previous, forward, None, winSize=window, maxLevel=o.pyramid_levels,
-            criteria=criteria,
+            image, self._previous, forward, prev.copy(), winSize=window, maxLevel=o.pyramid_levels,
+            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         forward = forward.reshape(-1, 2)
         fb_error = np.linalg.norm(backward.reshape(-1, 2) - self.pixels, axis=1)

@@ -81,6 +81,7 @@ class TrackerOptions:
     relocalised_jump_deg: float = 1.0
     fuse_target_with_map: bool = False  # target visible: one pose from its corners and the map points
     max_motion_m: float = 0.5  # a tracker pose further than this from the prediction is refused
+    max_extrapolation_s: float = 0.5  # the motion model predicts no further ahead than this
     # relocalisation against keyframes (ORB)
     orb_features: int = 2000  # corners described in a lost frame
     reloc_min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible

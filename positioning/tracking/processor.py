@@ -166,7 +166,8 @@ class TrackingProcessor:
         if image.shape != (self.calibration.height, self.calibration.width):
             return FrameResult(None, "bad_image", f"image is {image.shape[1]}x{image.shape[0]}, the calibration is "
                                                   f"for {self.calibration.width}x{self.calibration.height}")
-        tracks = self.front_end.track(image)
+        guesses = self.tracker.predict_pixels(stamp_ns, self.front_end.ids, self.front_end.pixels)
+        tracks = self.front_end.track(image, guesses)
         observation, seen = self._observe_target(image)
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)

@@ -60,7 +60,11 @@ class Tracker:
         self.initialised = False
         self.lost = False
         self._last: Transform | None = None  # pose of the last frame with one
-        self._velocity: Transform | None = None  # T_prev_last (camera motion per frame)
+        self._last_stamp = 0  # and its time stamp
+        # camera motion per second, (rotation vector, translation) of T_last_next in the
+        # last camera's frame: per second, not per frame, because a live camera's frames
+        # come irregularly (the newest-frame queue skips frames when processing lags)
+        self._velocity: tuple[np.ndarray, np.ndarray] | None = None
         self._frame_tracks = Tracks.empty()
         self._frame_xn = np.zeros((0, 2))
         self._frame_pose: Transform | None = None
@@ -89,7 +93,7 @@ class Tracker:
         if not self.initialised:
             return self._initialising(stamp_ns, tracks, xn, trusted)
 
-        prediction = self._predict()
+        prediction = self._predict(stamp_ns)
         tracked, inliers, drop, rms = self._pnp(tracks, xn, prediction)
         if trusted is not None:
             pose = trusted.T_world_camera
@@ -120,7 +124,7 @@ class Tracker:
         forced = state is PoseState.RELOCALISED
         self._target_seen = trusted is not None
         self.lost = False
-        self._update_motion(pose)
+        self._update_motion(pose, stamp_ns)
         self._frame_pose = pose
         want = self._maybe_keyframe(stamp_ns, pose, tracks, xn, trusted, inliers, forced)
         status = "ok" if state is not PoseState.RELOCALISED else "relocalised"
@@ -148,7 +152,7 @@ class Tracker:
         the matched map points again as ``tracks``. The frame becomes a keyframe, so the
         fresh corners that ``add_tracks`` brings next can be triangulated against it."""
         self.lost = False
-        self._last, self._velocity = pose, None
+        self._last, self._last_stamp, self._velocity = pose, stamp_ns, None
         self._frame_pose, self._frame_stamp = pose, stamp_ns
         self._frame_tracks, self._frame_xn = tracks, undistort(tracks.pixels, self.calibration)
         self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
@@ -168,7 +172,7 @@ class Tracker:
             return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
         estimate = PoseEstimate(trusted.T_world_camera, PoseState.TARGET, trusted.planes, trusted.tag_ids,
                                 trusted.reproj_rms_px, trusted.covariance)
-        self._update_motion(trusted.T_world_camera)
+        self._update_motion(trusted.T_world_camera, stamp_ns)
         if not self._anchors(trusted):
             # published, but too uncertain to fix the map's scale and frame
             return TrackerOutput(FrameResult(estimate, "ok", "initialising: target pose too uncertain to anchor"),
@@ -200,14 +204,58 @@ class Tracker:
         return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
 
     # ------------------------------------------------------------------ tracking
-    def _predict(self) -> Transform | None:
+    def _predict(self, stamp_ns: int) -> Transform | None:
+        """The pose at ``stamp_ns`` by the constant-velocity motion model (the last pose
+        when the velocity is unknown or the gap too long to extrapolate)."""
         if self._last is None or self.lost:
             return None
-        return self._last if self._velocity is None else self._last @ self._velocity
+        dt = (stamp_ns - self._last_stamp) / 1e9
+        if self._velocity is None or not 0.0 < dt <= self.options.max_extrapolation_s:
+            return self._last
+        rotation_per_s, translation_per_s = self._velocity
+        return self._last @ Transform.from_rvec_tvec(rotation_per_s * dt, translation_per_s * dt)
 
-    def _update_motion(self, pose: Transform) -> None:
-        self._velocity = None if self._last is None else self._last.inverse() @ pose
-        self._last = pose
+    def _update_motion(self, pose: Transform, stamp_ns: int) -> None:
+        dt = (stamp_ns - self._last_stamp) / 1e9
+        if self._last is None or not 0.0 < dt <= self.options.max_extrapolation_s:
+            self._velocity = None
+        else:
+            step = self._last.inverse() @ pose
+            self._velocity = (step.rvec() / dt, step.translation / dt)
+        self._last, self._last_stamp = pose, stamp_ns
+
+    def predict_pixels(self, stamp_ns: int, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
+        """Where the tracks ``ids`` (now at ``pixels``, in the last frame with a pose) should
+        be in the frame at ``stamp_ns``, by the motion model; None when it knows nothing.
+
+        The front end starts its search there, so a fast turn or a skipped frame does not
+        carry the features beyond KLT's reach (its pyramid follows ~80 px; a 2 deg/frame
+        turn at 10 fps moves them ~60 px, twice that when a frame is skipped). Tracks with
+        a map point are projected from it; the others as if at the map's median depth."""
+        if self._last_stamp != self._frame_stamp:
+            return None  # the last pose is older than the tracks' frame (no pose there)
+        prediction = self._predict(stamp_ns)
+        if prediction is None or self._velocity is None or len(ids) == 0:
+            return None
+        T_next_last = prediction.inverse() @ self._last
+        rays = np.column_stack([undistort(pixels, self.calibration), np.ones(len(ids))])
+        has = np.array([int(t) in self.map.points for t in ids], dtype=bool)
+        in_last = np.zeros((len(ids), 3))
+        if has.any():
+            world = np.array([self.map.points[int(t)] for t in ids[has]])
+            in_last[has] = self._last.inverse().apply(world)
+        depths = in_last[has, 2][in_last[has, 2] > 0]
+        # without map points (initialising) the target's distance is the best guess there is
+        depth = float(np.median(depths)) if len(depths) else float(np.linalg.norm(self._last.translation))
+        in_last[~has] = rays[~has] * float(np.clip(depth, 0.2, 50.0))
+        in_next = T_next_last.apply(in_last)
+        projected, _ = cv2.projectPoints(in_next, np.zeros(3), np.zeros(3), self.calibration.camera_matrix,
+                                         self.calibration.distortion)
+        projected = projected.reshape(-1, 2)
+        # a point behind the camera has no sensible guess: search from where it was
+        unusable = (in_next[:, 2] <= 1e-3) | ~np.all(np.isfinite(projected), axis=1)
+        projected[unusable] = np.asarray(pixels, np.float64).reshape(-1, 2)[unusable]
+        return projected
 
     def _anchors(self, target: TargetObservation | None) -> bool:
         """Is this target pose good enough to hold a keyframe (and so the map) in place?
