@@ -338,3 +338,28 @@ def test_pure_rotation_stays_finite_and_ends_lost_or_tracking_without_a_jump(see
         if previous is not None:
             assert np.linalg.norm(e.T_world_camera.translation - previous) < 0.05  # no wild jump
         previous = e.T_world_camera.translation
+
+
+def test_motion_model_predicts_where_tracks_land_after_a_skipped_frame():
+    """The front end starts KLT at ``predict_pixels``: after two frames of one step each
+    (100 ms) and a gap of two (a frame skipped), the guesses are a small fraction of the
+    distance the features moved, for tracks with map points and for those without."""
+    poses = trolley_path(50)  # twice the speed of the other tests
+    tracker = Tracker(CAL, SYNC)
+    source = SyntheticTracks(room_points(12), seed=13, noise_px=0.0)
+    run(tracker, source, poses[:21], lambda i: i < 12)
+    last = source.tracks(poses[20])  # the live tracks in the last frame stepped (noise-free)
+    predicted = tracker.predict_pixels(22 * 100_000_000, last.ids, last.pixels)
+    assert predicted is not None and predicted.shape == last.pixels.shape
+    source._view(poses[22])
+    truth = source._uv[last.ids]
+    moved = np.linalg.norm(truth - last.pixels, axis=1)
+    missed = np.linalg.norm(truth - predicted, axis=1)
+    has_point = np.array([int(t) in tracker.map.points for t in last.ids])
+    assert has_point.sum() >= 50 and (~has_point).sum() >= 5  # both kinds are there
+    assert np.median(moved) > 15  # a turn: KLT would start ~20 px off (measured 22)
+    assert np.median(missed[has_point]) < 0.2 * np.median(moved[has_point])  # measured 2.0 px
+    assert np.median(missed[~has_point]) < 0.3 * np.median(moved[~has_point])  # measured 2.7 px
+    # a frame without a pose (lost): nothing to predict, KLT searches from the old pixels
+    assert tracker.step(23 * 100_000_000, Tracks.empty(), None).result.status == "lost"
+    assert tracker.predict_pixels(24 * 100_000_000, last.ids, last.pixels) is None
