@@ -21,6 +21,7 @@ class FeatureOptions:
     window_px: int = 21  # KLT window at each pyramid level
     pyramid_levels: int = 3
     max_fb_error_px: float = 0.5  # forward-backward check: track back and compare
+    fb_check_levels: int = 0  # pyramid levels of the backward pass (it starts at the answer)
     target_margin_px: int = 20  # no corners within this of the target's image outline
     border_px: int = 16  # no corners this close to the image edge
 
