@@ -149,7 +149,13 @@ def solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleSo
         return np.concatenate([r_obs.ravel(), r_tgt.ravel()])
 
     n_obs = len(problem.obs_kf)
-    sparsity = _sparsity(problem, free_index, n_free, n_points)
+    rows, cols = _jacobian_pattern(problem, free_index, n_free, n_points)
+    shape = (2 * (n_obs + len(problem.tgt_kf)), 6 * n_free + 3 * n_points)
+
+    def jacobian(x: np.ndarray, row_weights: np.ndarray) -> csr_matrix:
+        values = _jacobian_values(problem, x[: 6 * n_free].reshape(n_free, 6), *unpack(x), fx, weight)
+        return csr_matrix(((values * row_weights[rows]), (rows, cols)), shape=shape)
+
     x = np.zeros(6 * n_free + 3 * n_points)
     initial = residuals(x)
     # Robustness by iteratively reweighted least squares: SciPy's own Huber loss converges
@@ -162,8 +168,8 @@ def solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleSo
         weights = np.sqrt(np.minimum(1.0, options.huber_px / np.maximum(per_point, 1e-12)))
         row_weights = np.repeat(weights, 2)
         result = least_squares(
-            lambda v, w=row_weights: residuals(v) * w, x, jac_sparsity=sparsity, method="trf",
-            tr_solver="lsmr", x_scale=1.0, max_nfev=options.max_iterations,
+            lambda v, w=row_weights: residuals(v) * w, x, jac=lambda v, w=row_weights: jacobian(v, w),
+            method="trf", tr_solver="lsmr", x_scale=1.0, max_nfev=options.max_iterations,
         )
         x = result.x
         evaluations += int(result.nfev)
@@ -191,29 +197,79 @@ def solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleSo
     )
 
 
-def _sparsity(problem: BundleProblem, free_index: np.ndarray, n_free: int, n_points: int) -> csr_matrix:
-    """Which parameters each residual row depends on: its pose (if free) and its point."""
+def _jacobian_pattern(problem: BundleProblem, free_index: np.ndarray, n_free: int, n_points: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column of every structurally non-zero Jacobian entry, in the order
+    ``_jacobian_values`` fills them: per observation row, its pose's 6 columns (when the
+    pose is free) and its point's 3; per target-corner row, its pose's 6."""
     n_obs, n_tgt = len(problem.obs_kf), len(problem.tgt_kf)
-    rows, cols = [], []
-    obs_rows = np.repeat(2 * np.arange(n_obs), 2) + np.tile([0, 1], n_obs)  # (2 O,)
-    obs_pose = np.repeat(free_index[problem.obs_kf], 2)
-    obs_point = np.repeat(problem.obs_pt, 2)
-    has_pose = obs_pose >= 0
-    for c in range(6):
-        rows.append(obs_rows[has_pose])
-        cols.append(6 * obs_pose[has_pose] + c)
-    for c in range(3):
-        rows.append(obs_rows)
-        cols.append(6 * n_free + 3 * obs_point + c)
-    tgt_rows = 2 * n_obs + np.repeat(2 * np.arange(n_tgt), 2) + np.tile([0, 1], n_tgt)
-    tgt_pose = np.repeat(free_index[problem.tgt_kf], 2)
-    for c in range(6):
-        rows.append(tgt_rows)
-        cols.append(6 * tgt_pose + c)
-    r = np.concatenate(rows)
-    c = np.concatenate(cols)
-    shape = (2 * (n_obs + n_tgt), 6 * n_free + 3 * n_points)
-    return csr_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=shape)
+    obs_rows = np.arange(2 * n_obs).reshape(n_obs, 2)
+    pose_cols = 6 * free_index[problem.obs_kf][:, None] + np.arange(6)  # (O, 6)
+    point_cols = 6 * n_free + 3 * problem.obs_pt[:, None] + np.arange(3)  # (O, 3)
+    has_pose = free_index[problem.obs_kf] >= 0
+    rows = [np.broadcast_to(obs_rows[has_pose][:, :, None], (int(has_pose.sum()), 2, 6)).ravel(),
+            np.broadcast_to(obs_rows[:, :, None], (n_obs, 2, 3)).ravel()]
+    cols = [np.broadcast_to(pose_cols[has_pose][:, None, :], (int(has_pose.sum()), 2, 6)).ravel(),
+            np.broadcast_to(point_cols[:, None, :], (n_obs, 2, 3)).ravel()]
+    tgt_rows = 2 * n_obs + np.arange(2 * n_tgt).reshape(n_tgt, 2)
+    tgt_cols = 6 * free_index[problem.tgt_kf][:, None] + np.arange(6)
+    rows.append(np.broadcast_to(tgt_rows[:, :, None], (n_tgt, 2, 6)).ravel())
+    cols.append(np.broadcast_to(tgt_cols[:, None, :], (n_tgt, 2, 6)).ravel())
+    return np.concatenate(rows), np.concatenate(cols)
+
+
+def _jacobian_values(problem: BundleProblem, deltas: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                     points: np.ndarray, fx: float, target_weight: float) -> np.ndarray:
+    """The analytic Jacobian's entries, in ``_jacobian_pattern``'s order (finite
+    differences cost 9 residual evaluations per Jacobian and 40 % of the solve)."""
+    left = np.zeros((len(rotations), 3, 3))
+    left[:] = np.eye(3)
+    left[problem.free] = _so3_left_jacobian(deltas[:, :3])
+    has_pose = problem.free[problem.obs_kf]
+    pc = np.einsum("nij,nj->ni", rotations[problem.obs_kf], points[problem.obs_pt]) + translations[problem.obs_kf]
+    d_pc = _projection_jacobian(pc, fx)  # (O, 2, 3)
+    d_pose = _pose_block(d_pc, pc - translations[problem.obs_kf], left[problem.obs_kf])
+    d_point = np.einsum("nij,njk->nik", d_pc, rotations[problem.obs_kf])  # (O, 2, 3)
+    tc = np.einsum("nij,nj->ni", rotations[problem.tgt_kf], problem.tgt_world) + translations[problem.tgt_kf]
+    d_tc = _projection_jacobian(tc, fx * target_weight)
+    d_tgt = _pose_block(d_tc, tc - translations[problem.tgt_kf], left[problem.tgt_kf])
+    return np.concatenate([d_pose[has_pose].ravel(), d_point.ravel(), d_tgt.ravel()])
+
+
+def _projection_jacobian(pc: np.ndarray, scale: float) -> np.ndarray:
+    """(N, 2, 3): d(scale * (x / z, y / z)) / d(x, y, z)."""
+    z = np.where(np.abs(pc[:, 2]) < 1e-9, 1e-9, pc[:, 2])
+    out = np.zeros((len(pc), 2, 3))
+    out[:, 0, 0] = out[:, 1, 1] = scale / z
+    out[:, 0, 2] = -scale * pc[:, 0] / z**2
+    out[:, 1, 2] = -scale * pc[:, 1] / z**2
+    return out
+
+
+def _pose_block(d_pc: np.ndarray, rotated: np.ndarray, left: np.ndarray) -> np.ndarray:
+    """(N, 2, 6) for the pose update (R = exp(w) R0, t = t0 + dt): d pc = -[R p]x J_l(w) dw + dt."""
+    out = np.empty((len(d_pc), 2, 6))
+    out[:, :, :3] = -np.einsum("nij,njk,nkl->nil", d_pc, _skew(rotated), left)
+    out[:, :, 3:] = d_pc
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _so3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): exp(w + d) = exp(J_l(w) d) exp(w) to first order in d."""
+    theta = np.linalg.norm(w, axis=1)
+    k = _skew(w)
+    small = theta < 1e-6
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5, (1 - np.cos(t)) / t**2)
+    b = np.where(small, 1.0 / 6.0, (t - np.sin(t)) / t**3)
+    return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
 def apply_solution(world_map: Map, solution: BundleSolution) -> bool:
