@@ -241,6 +241,34 @@ def test_bundle_adjustment_pulls_a_perturbed_window_back_onto_the_target():
     assert not apply_solution(world_map, solution)
 
 
+def test_a_late_solution_carries_the_keyframes_and_points_built_meanwhile():
+    """A background solution lands after a keyframe and points were added on the old
+    poses: they move with the newest adjusted keyframe, including a point triangulated
+    against an old keyframe (its birth keyframe is old, but it was added after the
+    snapshot); a point the solution knew keeps the solved position."""
+    world_map = Map()
+    pose = look_at(np.array([-1.5, -1.8, 0.5]), np.zeros(3))
+    ids = np.arange(3, dtype=np.int64)
+    for k in range(2):
+        world_map.add_keyframe(k, pose, ids, np.zeros((3, 2)))
+    world_map.add_point(0, np.array([1.0, 0.0, 0.0]), 0)
+    problem = build_problem(world_map, BundleOptions(window_keyframes=2))
+    assert problem is not None and list(problem.point_ids) == [0]
+    # meanwhile, in the frame loop: a keyframe, a point born at keyframe 0, one at keyframe 2
+    world_map.add_keyframe(2, pose, ids, np.zeros((3, 2)))
+    world_map.add_point(1, np.array([0.0, 1.0, 0.0]), 0)
+    world_map.add_point(2, np.array([0.0, 0.0, 1.0]), 2)
+    shift = Transform(np.eye(3), np.array([0.0, 0.0, 0.01]))  # the solution moved both keyframes 1 cm up
+    solution = replace(solve(problem, BundleOptions(max_iterations=1), CAL.fx),
+                       T_world_camera=(shift @ pose, shift @ pose), points=np.array([[1.0, 0.0, 0.01]]),
+                       bad_point_ids=np.zeros(0, np.int64))
+    assert apply_solution(world_map, solution)
+    np.testing.assert_allclose(world_map.keyframes[2].T_world_camera.translation, pose.translation + [0, 0, 0.01], atol=1e-12)
+    np.testing.assert_allclose(world_map.points[0], [1.0, 0.0, 0.01], atol=1e-12)
+    np.testing.assert_allclose(world_map.points[1], [0.0, 1.0, 0.01], atol=1e-12)
+    np.testing.assert_allclose(world_map.points[2], [0.0, 0.0, 1.01], atol=1e-12)
+
+
 # ---------------------------------------------------------------------------- tracker
 def test_tracker_initialises_on_the_target_and_keeps_metric_scale_after_it_leaves():
     poses = trolley_path()

@@ -35,6 +35,7 @@ from positioning.tracking.options import BundleOptions
 @dataclass(frozen=True)
 class BundleProblem:
     epoch: int
+    points_added: int  # the map's point count at the snapshot: later points are not in it
     kf_ids: np.ndarray  # (K,) keyframes taking part
     T_camera_world: tuple[Transform, ...]  # (K,) starting poses
     free: np.ndarray  # (K,) bool: optimised, or held fixed
@@ -51,6 +52,7 @@ class BundleProblem:
 @dataclass(frozen=True)
 class BundleSolution:
     epoch: int
+    points_added: int
     kf_ids: np.ndarray
     T_world_camera: tuple[Transform, ...]  # optimised poses of kf_ids (fixed ones unchanged)
     point_ids: np.ndarray
@@ -102,6 +104,7 @@ def build_problem(world_map: Map, options: BundleOptions) -> BundleProblem | Non
             tgt_xn.append(kf.target_xn)
     return BundleProblem(
         epoch=world_map.epoch,
+        points_added=world_map.points_added,
         kf_ids=np.array([kf.kf_id for kf in used], dtype=np.int64),
         T_camera_world=tuple(kf.T_world_camera.inverse() for kf in used),
         free=free,
@@ -185,6 +188,7 @@ def solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleSo
     poses = tuple(Transform(r, t).inverse() for r, t in zip(rotations, translations, strict=True))
     return BundleSolution(
         epoch=problem.epoch,
+        points_added=problem.points_added,
         kf_ids=problem.kf_ids,
         T_world_camera=poses,
         point_ids=problem.point_ids,
@@ -285,12 +289,12 @@ def apply_solution(world_map: Map, solution: BundleSolution) -> bool:
                 newest, moved = kf.kf_id, pose @ kf.T_world_camera.inverse()
             kf.T_world_camera = pose
     if moved is not None:
-        _carry_along(world_map, newest, moved, set(int(p) for p in solution.point_ids))
+        _carry_along(world_map, newest, moved, solution.points_added)
     bad = set(int(p) for p in solution.bad_point_ids)
     for point_id, position in zip(solution.point_ids, solution.points, strict=True):
         pid = int(point_id)
-        if pid not in world_map.points:
-            continue
+        if pid not in world_map.points or world_map.point_serial[pid] > solution.points_added:
+            continue  # culled, or dropped and triangulated anew since the snapshot
         if pid in bad or not np.all(np.isfinite(position)):
             world_map.remove_point(pid)
         else:
@@ -298,15 +302,17 @@ def apply_solution(world_map: Map, solution: BundleSolution) -> bool:
     return True
 
 
-def _carry_along(world_map: Map, newest: int, moved: Transform, solved_points: set[int]) -> None:
+def _carry_along(world_map: Map, newest: int, moved: Transform, points_added: int) -> None:
     """A solution computed in the background lands after more keyframes and points were
     built on the old poses: move those with the newest adjusted keyframe, so the map stays
-    consistent (old and new parts otherwise disagree by the whole correction)."""
+    consistent (old and new parts otherwise disagree by the whole correction). A point is
+    new when it was added after the snapshot, whichever keyframe it was triangulated
+    against (one triangulated against an old keyframe is still placed by the new ones)."""
     for kf in world_map.keyframes.values():
         if kf.kf_id > newest and not kf.anchored:
             kf.T_world_camera = moved @ kf.T_world_camera
-    for track_id, birth in world_map.point_birth.items():
-        if birth > newest and track_id not in solved_points:
-            kf = world_map.keyframes.get(birth)
+    for track_id, serial in world_map.point_serial.items():
+        if serial > points_added:
+            kf = world_map.keyframes.get(world_map.point_birth[track_id])
             if kf is None or not kf.anchored:
                 world_map.points[track_id] = moved.apply(world_map.points[track_id][None])[0]

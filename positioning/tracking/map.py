@@ -57,6 +57,8 @@ class Map:
         self.keyframes: OrderedDict[int, Keyframe] = OrderedDict()
         self.points: dict[int, np.ndarray] = {}  # track id -> (3,) world position
         self.point_birth: dict[int, int] = {}  # track id -> keyframe it was triangulated at
+        self.point_serial: dict[int, int] = {}  # track id -> when it was added (``points_added`` then)
+        self.points_added = 0  # points ever added: a background solution knows what came after it
         self.next_kf_id = 0
         # Bumped whenever the map is moved as a whole (correction, reset), so that a bundle
         # adjustment computed on the old map is not applied to the new one.
@@ -85,10 +87,13 @@ class Map:
     def add_point(self, track_id: int, position: np.ndarray, birth_kf: int) -> None:
         self.points[int(track_id)] = np.asarray(position, np.float64).reshape(3).copy()
         self.point_birth[int(track_id)] = birth_kf
+        self.points_added += 1
+        self.point_serial[int(track_id)] = self.points_added
 
     def remove_point(self, track_id: int) -> None:
         self.points.pop(int(track_id), None)
         self.point_birth.pop(int(track_id), None)
+        self.point_serial.pop(int(track_id), None)
 
     def observers(self, track_id: int) -> list[Keyframe]:
         return [kf for kf in self.keyframes.values() if kf.observation(track_id) is not None]
