@@ -241,6 +241,28 @@ def test_bundle_adjustment_pulls_a_perturbed_window_back_onto_the_target():
     assert not apply_solution(world_map, solution)
 
 
+def test_the_window_keeps_the_newest_anchored_keyframes_that_share_its_points():
+    """Four anchored keyframes, then six without the target: the window (6) is the six,
+    and the three newest anchored keyframes join it, adjusted and held by their corners;
+    the oldest anchored one stays as a fixed constraint."""
+    world_map = Map()
+    pose = look_at(np.array([-1.5, -1.8, 0.5]), np.zeros(3))
+    ids = np.arange(4, dtype=np.int64)
+    corners = CUBE.tags[0].corners
+    for k in range(10):
+        anchored = k < 4
+        world_map.add_keyframe(k, pose, ids, np.zeros((4, 2)), corners if anchored else None,
+                               np.zeros((4, 2)) if anchored else None)
+    for t in ids:
+        world_map.add_point(int(t), np.array([0.0, 0.0, 1.0 + t]), 0)
+    problem = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=3))
+    free = dict(zip(problem.kf_ids.tolist(), problem.free.tolist(), strict=True))
+    assert free == {0: False, 1: True, 2: True, 3: True, 4: True, 5: True, 6: True, 7: True, 8: True, 9: True}
+    assert len(problem.tgt_kf) == 3 * 4  # the corners of the three adjusted anchored keyframes
+    plain = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=0))
+    assert sorted(plain.kf_ids[plain.free].tolist()) == [4, 5, 6, 7, 8, 9] and len(plain.tgt_kf) == 0
+
+
 def test_a_late_solution_carries_the_keyframes_and_points_built_meanwhile():
     """A background solution lands after a keyframe and points were added on the old
     poses: they move with the newest adjusted keyframe, including a point triangulated

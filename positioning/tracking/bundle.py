@@ -65,23 +65,29 @@ class BundleSolution:
 
 
 def build_problem(world_map: Map, options: BundleOptions) -> BundleProblem | None:
-    """The last ``window_keyframes`` keyframes, their points, and every other keyframe
-    seeing those points (held fixed). None when there is nothing to adjust."""
+    """The last ``window_keyframes`` keyframes and their points, the newest
+    ``anchored_keyframes`` older anchored keyframes seeing those points (also adjusted, held
+    by the target's corners), and every other keyframe seeing those points (held fixed).
+    None when there is nothing to adjust."""
     keyframes = list(world_map.keyframes.values())
     window = keyframes[-options.window_keyframes:]
     if len(window) < 2:
         return None
-    window_ids = {kf.kf_id for kf in window}
     point_ids_set: set[int] = set()
     for kf in window:
         point_ids_set.update(int(t) for t in kf.track_ids if int(t) in world_map.points)
     if not point_ids_set:
         return None
+    older = keyframes[: -options.window_keyframes]
+    extra = [kf for kf in older if kf.anchored and any(int(t) in point_ids_set for t in kf.track_ids)]
+    extra = extra[len(extra) - options.anchored_keyframes:] if options.anchored_keyframes else []
+    window = extra + window
+    window_ids = {kf.kf_id for kf in window}
     point_ids = np.array(sorted(point_ids_set), dtype=np.int64)
     point_index = {int(p): i for i, p in enumerate(point_ids)}
     # older keyframes that see the window's points join as fixed constraints
     fixed_outside = [
-        kf for kf in keyframes[: -options.window_keyframes]
+        kf for kf in older if kf.kf_id not in window_ids
         if any(int(t) in point_index for t in kf.track_ids)
     ][-options.window_keyframes:]
     used = fixed_outside + window
