@@ -147,9 +147,10 @@ def test_router_killed_and_restarted_poses_resume_and_the_loop_never_waits(runni
         assert wait_until(lambda: len(poses) >= 5), "no poses through the router"
         baseline = daemon.frames_during(1.5)
         assert baseline >= 5
-        lost_at = time.monotonic()
         router.kill()  # the robot's router dies: every link through it drops at once
         router.wait(10)
+        # a pose already in the robot's socket when the router died may still be handed over
+        lost_at = time.monotonic() + 0.5
         poses_before = daemon.daemon.stats.poses
         during = daemon.frames_during(1.5)
         assert during >= 0.5 * baseline, (baseline, during)  # the loop did not wait for the network
