@@ -1,11 +1,12 @@
 """Sliding-window bundle adjustment with SciPy's ``least_squares`` and a sparse Jacobian.
 
-Why SciPy: it is already a dependency, it is BSD, and with ``jac_sparsity`` its
-trust-region solver ('trf' with LSMR) exploits the block structure of bundle adjustment.
-Each residual row touches one pose (6 columns) and one point (3 columns), so the
-finite-difference Jacobian needs only 9 grouped evaluations of the vectorised residual,
-whatever the window's size. GTSAM or Ceres would be faster per iteration but add a large
-binary dependency for a problem of a few hundred points and six keyframes.
+Why SciPy: it is already a dependency, it is BSD, and given a sparse Jacobian its
+trust-region solver ('trf' with LSMR) exploits the block structure of bundle adjustment:
+each residual row touches one pose (6 columns) and one point (3 columns). The Jacobian is
+analytic (``_jacobian_values``; finite differences cost 9 residual evaluations each time).
+GTSAM or Ceres would be faster per iteration but add a large binary dependency for a
+problem of a few hundred points and six keyframes; a hand-written Levenberg-Marquardt was
+faster but less accurate on image tracks (docs/tracker.md).
 
 Poses are parametrised as a small update on their starting value (``R = exp(w) R0``,
 ``t = t0 + dt``, camera-from-world), points as world positions. The target's corners seen
@@ -35,7 +36,7 @@ from positioning.tracking.options import BundleOptions
 @dataclass(frozen=True)
 class BundleProblem:
     epoch: int
-    points_added: int  # the map's point count at the snapshot: later points are not in it
+    points_added: int  # the map's ``points_added`` at the snapshot: points added later are not in it
     kf_ids: np.ndarray  # (K,) keyframes taking part
     T_camera_world: tuple[Transform, ...]  # (K,) starting poses
     free: np.ndarray  # (K,) bool: optimised, or held fixed
