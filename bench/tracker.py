@@ -8,6 +8,7 @@ exactly as ``cubeloc track`` does; processing time excludes PNG decoding):
 - ``orbit``: the cube always in view, 20 s.
 - ``room_walk``: 40 s, the cube out of view for more than 20 s and back at the end: scale
   drift while away, RMS ATE after its return.
+- bundle adjustment solvers: ours and SciPy's on the same windows of ``paper``.
 - throughput: the ``paper`` frames played forwards and backwards (a continuous motion),
   bundle adjustment in its worker thread as in the daemon; sustained fps is the median
   over ``RUNS`` runs of ``THROUGHPUT_FRAMES`` frames (wall time of ``process()``, and the
@@ -16,11 +17,15 @@ exactly as ``cubeloc track`` does; processing time excludes PNG decoding):
   peak RSS and the map's size at the end. The frames are the 30 s of ``paper`` rendered
   once and cycled forwards and backwards (rendering 6000 frames would take most of an
   hour here); the tracker sees one continuous 10-minute motion.
+- live: frames on the camera's clock (10 and 30 fps) through the daemon's newest-frame
+  slot, bundle adjustment in its thread; several runs of our solver and of SciPy's (the
+  baseline) in turn.
 
 Environment: ``CUBELOC_BENCH_SEQUENCES=DIR`` renders the sequences into DIR once and reuses
 them on later runs (paper 30 s seed 1, orbit 20 s seed 2, room_walk 40 s seed 3);
 ``CUBELOC_BENCH_LONG_FRAMES`` sets the length of the memory run (default
-6000), ``CUBELOC_BENCH_RUNS`` the number of throughput runs (default 3).
+6000), ``CUBELOC_BENCH_RUNS`` the number of throughput runs (default 3),
+``CUBELOC_BENCH_LIVE_RUNS`` the number of live runs of each solver at 10 fps (default 4).
 """
 
 from __future__ import annotations
@@ -55,13 +60,15 @@ def _render(root: Path, name: str, seconds: float, seed: int, fps: float = 10.0,
     return out
 
 
-def _replay(sequence: Path, background: bool, frames: int | None = None):
+def _replay(sequence: Path, background: bool, frames: int | None = None, problems: list | None = None):
     """(results, ground truth poses, per-frame processing seconds, processor) for one pass,
     or for ``frames`` frames played forwards and backwards (a continuous motion) with the
-    stamps running on."""
+    stamps running on. ``problems``, when given, receives the bundle adjustment problem of
+    every new keyframe (for the solver comparison)."""
     from calib.camera_info import read_camera_info
     from drivers.sequence import read_mono_png, read_sequence_index
     from positioning.target import load_target
+    from positioning.tracking import bundle
     from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
     from positioning.trajectory_io import read_tum
 
@@ -82,15 +89,47 @@ def _replay(sequence: Path, background: bool, frames: int | None = None):
             image = read_mono_png(entry.path)
             stamp = entries[0].stamp_ns + k * period
             started = time.perf_counter()
+            keyframes = processor.tracker.map.next_kf_id
             results.append(processor.process(image, stamp, k))
             seconds.append(time.perf_counter() - started)
+            if problems is not None and processor.tracker.map.next_kf_id != keyframes:
+                problem = bundle.build_problem(processor.tracker.map, options.tracker.bundle)
+                if problem is not None:
+                    problems.append(problem)
     finally:
         processor.close()
     return results, truth, seconds, processor
 
 
+def _solver_comparison(problems: list, fx: float, repeats: int = 3) -> dict:
+    """Our Schur-complement solver against SciPy's least_squares on the same windows (every
+    third keyframe's): median time per window (each the median of ``repeats`` solves) and
+    the final reprojection error of both, in this process, one after the other."""
+    from positioning.tracking import bundle
+    from positioning.tracking.options import BundleOptions
+
+    seconds: dict[str, list[float]] = {"schur": [], "scipy": []}
+    rms: dict[str, list[float]] = {"schur": [], "scipy": []}
+    for problem in problems[::3]:
+        for solver in seconds:
+            options = BundleOptions(solver=solver)
+            runs = [bundle.solve(problem, options, fx) for _ in range(repeats)]
+            seconds[solver].append(float(np.median([r.seconds for r in runs])))
+            rms[solver].append(runs[0].final_rms_px)
+    ratio = np.array(seconds["scipy"]) / np.array(seconds["schur"])
+    return {
+        "windows": len(seconds["schur"]),
+        "schur_ms": 1000 * float(np.median(seconds["schur"])),
+        "scipy_ms": 1000 * float(np.median(seconds["scipy"])),
+        "speedup": float(np.median(ratio)),
+        "schur_rms": float(np.mean(rms["schur"])),
+        "scipy_rms": float(np.mean(rms["scipy"])),
+    }
+
+
 THROUGHPUT_FRAMES = 300
 RUNS = 3
+LIVE_RUNS = 4  # live runs of each solver at 10 fps (half as many at 30 fps)
 
 
 def _long_run(sequence: Path, frames: int) -> dict:
@@ -179,6 +218,45 @@ def _live(sequence: Path, options=None) -> dict:
     }
 
 
+def _live_section(paper: Path, paper_30: Path, live_runs: int) -> str:
+    """Runs of our solver and SciPy's in turn, live at 10 and 30 fps: a markdown note."""
+    rows = []
+    for sequence, camera, runs in ((paper, "paper 30 s, 10 fps camera", live_runs),
+                                   (paper_30, "paper 20 s, 30 fps camera", max(1, live_runs // 2))):
+        by_solver: dict[str, list[dict]] = {"ours": [], "SciPy's (baseline)": []}
+        for _ in range(runs):  # in turn, so that the machine's load falls on both alike
+            by_solver["ours"].append(_live(sequence, _options_with_solver("auto")))
+            by_solver["SciPy's (baseline)"].append(_live(sequence, _options_with_solver("scipy")))
+        for solver, lives in by_solver.items():
+            ate = [live["ate_mm"] for live in lives]
+            rows.append([
+                camera, solver,
+                f"**{np.median(ate):.2f}** ({min(ate):.2f}-{max(ate):.2f}; {sum(a <= 5.0 for a in ate)} of "
+                f"{len(ate)} within 5 mm)",
+                ", ".join(f"{a:.2f}" for a in ate),
+                f"{np.median([live['fps'] for live in lives]):.1f} of {lives[0]['camera_fps']:.0f}",
+                f"{sum(live['frames'] - live['processed'] for live in lives)} of {sum(live['frames'] for live in lives)}",
+                f"{np.median([live['busy_ms'] for live in lives]):.1f}",
+                f"{np.median([live['cpu_per_frame_ms'] for live in lives]):.0f}",
+                f"{np.median([live['bundle_ms'] for live in lives]):.0f}",
+            ])
+    return (
+        "Live, as the daemon runs it (`_live`): frames on the camera's clock into the daemon's newest-frame slot, "
+        "the tracker taking the newest when ready (skipping what it is too slow for), bundle adjustment in its "
+        "worker thread; images decoded beforehand. Our solver and SciPy's run in turn. The runs differ (which "
+        "keyframes a background solution covers depends on timing), so the RMS ATE is the median of the runs, "
+        "with its range.\n\n" + markdown_table(
+            ["camera", "bundle adjustment solver", "RMS ATE mm, median (range)", "runs", "frames processed per s",
+             "skipped", "median ms per frame", "process CPU ms per frame", "median BA ms per window"], rows))
+
+
+def _options_with_solver(solver: str):
+    from positioning.tracking.processor import ProcessorOptions
+
+    defaults = ProcessorOptions()
+    return replace(defaults, tracker=replace(defaults.tracker, bundle=replace(defaults.tracker.bundle, solver=solver)))
+
+
 def _peak_rss_mb() -> float:
     """This process's peak RSS since it started its program. Linux's ``ru_maxrss`` keeps the
     peak from before ``exec``, when the forked child still shared its parent's pages (it
@@ -216,7 +294,9 @@ def run() -> str:
     with tempfile.TemporaryDirectory(prefix="cubeloc-bench-tracker-") as tmp:
         root = Path(keep) if keep else Path(tmp)
         paper = _render(root, "paper", 30.0, seed=1)
-        results, truth, seconds, _ = _replay(paper, background=False)
+        problems: list = []
+        results, truth, seconds, processor = _replay(paper, background=False, problems=problems)
+        solvers = _solver_comparison(problems, processor.tracker.fx)
         ate = absolute_trajectory_error(truth, _estimates(results, truth))
         rpe = relative_pose_error(truth, _estimates(results, truth), delta_m=1.0)
         if keep:  # for a check with evo: evo_ape tum DIR/paper/groundtruth.tum DIR/paper.tum
@@ -277,24 +357,19 @@ def run() -> str:
             f"{processor.options.tracker.bundle.window_keyframes} keyframes (in its thread, never awaited)."
         )
 
+        notes.append(
+            f"Bundle adjustment solvers side by side on the same {solvers['windows']} windows of `paper` (every "
+            f"third keyframe's; each time the median of 3 solves, one solver after the other): ours "
+            f"(Levenberg-Marquardt on the Schur complement) **{solvers['schur_ms']:.0f} ms** per window, SciPy's "
+            f"least_squares (trf, LSMR; the former solver) {solvers['scipy_ms']:.0f} ms; median ratio "
+            f"**{solvers['speedup']:.1f}x**. Final reprojection error, mean over the windows: "
+            f"{solvers['schur_rms']:.4f} px (ours), {solvers['scipy_rms']:.4f} px (SciPy)."
+        )
+
         # As live: the camera's clock, the newest-frame slot, bundle adjustment in its thread.
         paper_30 = _render(root, "paper_30fps", 20.0, seed=1, fps=30.0, trajectory="paper")
-        live_rows = []
-        for sequence, label in ((paper, "paper, 10 fps camera (run 1)"), (paper, "paper, 10 fps camera (run 2)"),
-                                (paper_30, "paper 20 s, 30 fps camera")):
-            live = _live(sequence)
-            live_rows.append([
-                label, f"{live['fps']:.1f} of {live['camera_fps']:.0f}",
-                f"{live['frames'] - live['processed']} of {live['frames']}", f"{live['busy_ms']:.1f}",
-                f"{live['cpu_per_frame_ms']:.0f}", f"{live['ate_mm']:.2f} (max {live['max_mm']:.1f})",
-                f"{live['bundle_ms']:.0f}", live["states"],
-            ])
-        notes.append(
-            "Live, as the daemon runs it (`_live`): frames on the camera's clock into the daemon's newest-frame "
-            "slot, the tracker taking the newest when ready (skipping what it is too slow for), bundle "
-            "adjustment in its worker thread; images decoded beforehand.\n\n" + markdown_table(
-                ["run", "frames processed per s", "skipped", "median ms per frame", "process CPU ms per frame",
-                 "RMS ATE mm", "median BA ms", "states"], live_rows))
+        live_runs = int(os.environ.get("CUBELOC_BENCH_LIVE_RUNS", str(LIVE_RUNS)))
+        notes.append(_live_section(paper, paper_30, live_runs))
 
         frames = int(os.environ.get("CUBELOC_BENCH_LONG_FRAMES", "6000"))
         child = subprocess.run(

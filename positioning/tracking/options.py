@@ -7,6 +7,7 @@ Pixel thresholds are in pixels of the full-resolution image.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,7 @@ class InitOptions:
 
 @dataclass(frozen=True)
 class BundleOptions:
-    """Sliding-window bundle adjustment (SciPy least_squares, sparse Jacobian)."""
+    """Sliding-window bundle adjustment (bundle.py)."""
 
     window_keyframes: int = 6
     # The newest anchored keyframes that share points with the window join it (free, with
@@ -50,6 +51,13 @@ class BundleOptions:
     # (synthetic geometry, 6 seeds, solution 5 frames late: 5.8 -> 4.3 mm RMS ATE; 10
     # frames: 8.7 -> 6.2 mm; in the frame loop 4.6 -> 4.2 mm).
     anchored_keyframes: int = 3
+    # "schur": our Levenberg-Marquardt on the Schur complement (schur_lm.py), ~4x faster;
+    # "scipy": SciPy's least_squares (trf, LSMR). "auto": ours in the background, where a
+    # solution that lands late costs more than anything else (live, paper, 10 fps: 3.8-4.9
+    # mm against SciPy's 8.5-11.7), SciPy's in the frame loop, where time is free and its
+    # truncated steps measured more accurate (paper 20 s, 5 seeds: 2.4-3.5 against 3.1-5.0 mm).
+    solver: Literal["auto", "schur", "scipy"] = "auto"
+    min_damping: float = 1e3  # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py)
     max_iterations: int = 10  # residual evaluations per robust round (SciPy max_nfev)
     robust_rounds: int = 2  # reweighting rounds (Huber weights from the last residuals)
     huber_px: float = 1.5
