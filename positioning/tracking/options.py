@@ -53,9 +53,10 @@ class BundleOptions:
     anchored_keyframes: int = 3
     # "schur": our Levenberg-Marquardt on the Schur complement (schur_lm.py), ~4x faster;
     # "scipy": SciPy's least_squares (trf, LSMR). "auto": ours in the background, where a
-    # solution that lands late costs more than anything else (live, paper, 10 fps: 3.8-4.9
-    # mm against SciPy's 8.5-11.7), SciPy's in the frame loop, where time is free and its
-    # truncated steps measured more accurate (paper 20 s, 5 seeds: 2.4-3.5 against 3.1-5.0 mm).
+    # solution that lands late costs more than anything else (live, paper, 10 fps: median
+    # 4.4 mm over 10 runs against SciPy's 9.6 over 8), SciPy's in the frame loop, where time
+    # is free and its truncated steps measured more accurate (paper 20 s, 5 seeds: 2.4-3.5
+    # against 3.1-5.0 mm).
     solver: Literal["auto", "schur", "scipy"] = "auto"
     min_damping: float = 1e3  # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py)
     max_iterations: int = 10  # residual evaluations per robust round (SciPy max_nfev)
