@@ -69,12 +69,10 @@ def _replay(sequence: Path, background: bool, frames: int | None = None, problem
     from drivers.sequence import read_mono_png, read_sequence_index
     from positioning.target import load_target
     from positioning.tracking import bundle
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from positioning.tracking.processor import TrackingProcessor
     from positioning.trajectory_io import read_tum
 
-    defaults = ProcessorOptions()
-    options = replace(defaults, tracker=replace(
-        defaults.tracker, bundle=replace(defaults.tracker.bundle, background=background)))
+    options = _options(background=background)
     processor = TrackingProcessor(load_target(sequence / "target.yaml"), read_camera_info(sequence / "camera.yaml"),
                                   options)
     entries = read_sequence_index(sequence)
@@ -161,7 +159,7 @@ def _live(sequence: Path, options=None) -> dict:
     from positioning.evaluation import absolute_trajectory_error
     from positioning.target import load_target
     from positioning.tracking.processor import TrackingProcessor
-    from positioning.trajectory_io import read_tum
+    from positioning.trajectory_io import StampedPose, read_tum
 
     entries = read_sequence_index(sequence)
     images = [read_mono_png(e.path) for e in entries]
@@ -198,8 +196,6 @@ def _live(sequence: Path, options=None) -> dict:
     finally:
         processor.close()
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    from positioning.trajectory_io import StampedPose
-
     estimates = [StampedPose(t, r.estimate.T_world_camera) for r, t in zip(results, stamps, strict=True)
                  if r.estimate is not None]
     ate = absolute_trajectory_error(truth, estimates)
@@ -225,8 +221,8 @@ def _live_section(paper: Path, paper_30: Path, live_runs: int) -> str:
                                    (paper_30, "paper 20 s, 30 fps camera", max(1, live_runs // 2))):
         by_solver: dict[str, list[dict]] = {"ours": [], "SciPy's (baseline)": []}
         for _ in range(runs):  # in turn, so that the machine's load falls on both alike
-            by_solver["ours"].append(_live(sequence, _options_with_solver("auto")))
-            by_solver["SciPy's (baseline)"].append(_live(sequence, _options_with_solver("scipy")))
+            by_solver["ours"].append(_live(sequence, _options(solver="auto")))
+            by_solver["SciPy's (baseline)"].append(_live(sequence, _options(solver="scipy")))
         for solver, lives in by_solver.items():
             ate = [live["ate_mm"] for live in lives]
             rows.append([
@@ -250,11 +246,13 @@ def _live_section(paper: Path, paper_30: Path, live_runs: int) -> str:
              "skipped", "median ms per frame", "process CPU ms per frame", "median BA ms per window"], rows))
 
 
-def _options_with_solver(solver: str):
+def _options(**bundle_changes):
+    """The processor's default options with these bundle adjustment options changed."""
     from positioning.tracking.processor import ProcessorOptions
 
     defaults = ProcessorOptions()
-    return replace(defaults, tracker=replace(defaults.tracker, bundle=replace(defaults.tracker.bundle, solver=solver)))
+    bundle = replace(defaults.tracker.bundle, **bundle_changes)
+    return replace(defaults, tracker=replace(defaults.tracker, bundle=bundle))
 
 
 def _peak_rss_mb() -> float:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -224,6 +225,18 @@ class _Model:
         r_tgt = (tc[:, :2] / zt[:, None] - p.tgt_xn) * self.fx * self.target_weight
         return np.concatenate([r_obs.ravel(), r_tgt.ravel()])
 
+    @cached_property
+    def structure(self) -> schur_lm.BlockStructure:
+        """Which free pose and point each residual pair depends on (our solver's view)."""
+        p = self.problem
+        return schur_lm.BlockStructure(self.n_free, self.n_points, self.free_index[p.obs_kf], p.obs_pt,
+                                       self.free_index[p.tgt_kf])
+
+    @cached_property
+    def jacobian_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns of the Jacobian's entries (SciPy's sparse view)."""
+        return _jacobian_pattern(self.problem, self.free_index, self.n_free, self.n_points)
+
     def jacobian_blocks(self, x: np.ndarray) -> schur_lm.JacobianBlocks:
         deltas = x[: 6 * self.n_free].reshape(self.n_free, 6)
         return _jacobian_blocks(self.problem, deltas, *self.unpack(x), self.fx, self.target_weight)
@@ -233,8 +246,6 @@ def _round_with_schur(model: _Model, x: np.ndarray, weights: np.ndarray, options
                       ) -> tuple[np.ndarray, int]:
     """One weighted round with our Levenberg-Marquardt (schur_lm): (x, evaluations)."""
     p = model.problem
-    structure = schur_lm.BlockStructure(model.n_free, model.n_points, model.free_index[p.obs_kf], p.obs_pt,
-                                        model.free_index[p.tgt_kf])
     obs_w, tgt_w = weights[: model.n_obs, None, None], weights[model.n_obs:, None, None]
     posed = p.free[p.obs_kf]
     row_weights = np.repeat(weights, 2)
@@ -243,15 +254,15 @@ def _round_with_schur(model: _Model, x: np.ndarray, weights: np.ndarray, options
         j_pose, j_point, j_tgt = model.jacobian_blocks(v)
         return j_pose * obs_w[posed], j_point * obs_w, j_tgt * tgt_w
 
-    result = schur_lm.levenberg_marquardt(lambda v: model.residuals(v) * row_weights, weighted_blocks, structure,
-                                          x, options.max_iterations, options.min_damping)
+    result = schur_lm.levenberg_marquardt(lambda v: model.residuals(v) * row_weights, weighted_blocks,
+                                          model.structure, x, options.max_iterations, options.min_damping)
     return result.x, result.evaluations
 
 
 def _round_with_scipy(model: _Model, x: np.ndarray, weights: np.ndarray, options: BundleOptions
                       ) -> tuple[np.ndarray, int]:
     """One weighted round with SciPy's least_squares (trf, LSMR): (x, evaluations)."""
-    rows, cols = _jacobian_pattern(model.problem, model.free_index, model.n_free, model.n_points)
+    rows, cols = model.jacobian_pattern
     row_weights = np.repeat(weights, 2)
     shape = (len(row_weights), len(x))
 

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.sparse import csr_matrix
 
 
@@ -144,7 +145,7 @@ class _NormalEquations:
         if s.n_poses:
             y = (self.w.reshape(-1, s.n_points, 3).transpose(1, 0, 2) @ v_inv).transpose(1, 0, 2)  # W V^-1
             y = y.reshape(6 * s.n_poses, -1)
-            schur = _block_diagonal(u) - y @ self.w.T
+            schur = block_diag(*u) - y @ self.w.T
             rhs = -self.g_pose.ravel() + y @ g_point.ravel()
             try:
                 d_pose = np.linalg.solve(schur, rhs)
@@ -177,10 +178,3 @@ def _indicator(index: np.ndarray, n_rows: int) -> csr_matrix:
     """(n_rows, len(index)) with a one in (index[k], k): ``M @ values`` sums values by index."""
     return csr_matrix((np.ones(len(index)), (index, np.arange(len(index)))), shape=(n_rows, len(index)))
 
-
-def _block_diagonal(blocks: np.ndarray) -> np.ndarray:
-    n, k, _ = blocks.shape
-    out = np.zeros((n * k, n * k))
-    for i in range(n):
-        out[i * k:(i + 1) * k, i * k:(i + 1) * k] = blocks[i]
-    return out
