@@ -146,9 +146,10 @@ def test_live_capture_from_a_replayed_camera_saves_views_that_re_solve(tmp_path)
     again = run_cli("calibrate", "--images", f"{tmp_path}/live.views/*.png", "--board", CHARUCO, "--out", str(resolved_out))
     assert again.returncode == 0, again.stderr
     resolved = read_camera_info(resolved_out)
-    # the same corners (from the saved cache) give the same calibration
-    np.testing.assert_allclose(resolved.camera_matrix, live.camera_matrix, rtol=1e-9)
-    np.testing.assert_allclose(resolved.distortion, live.distortion, rtol=1e-6, atol=1e-12)
+    # the same corners (from the saved cache) give the same calibration; to 1e-5 px, not
+    # bit for bit: OpenCV's solver sums in threads, and CI measured cx 3.6e-7 px apart
+    np.testing.assert_allclose(resolved.camera_matrix, live.camera_matrix, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(resolved.distortion, live.distortion, rtol=1e-6, atol=1e-8)
 
     # a second capture to the same output needs --force (checked before the camera opens)
     refused = run_cli("calibrate", "--camera", f"replay:{sequence}", "--board", CHARUCO, "--out", str(out))
