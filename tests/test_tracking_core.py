@@ -23,6 +23,7 @@ from positioning.tracking.bundle import apply_solution, build_problem, solve
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.options import BundleOptions, InitOptions, TrackerOptions
+from positioning.tracking.patch_alignment import PatchAligner
 from positioning.tracking.tracker import Tracker
 from positioning.tracking.twoview import triangulate, undistort
 from positioning.tracking.types import TargetObservation, Tracks
@@ -209,6 +210,31 @@ def test_undistort_inverts_the_camera_model():
     assert np.abs(undistort(pixels, CAL) - xn).max() < 1e-9
 
 
+# ---------------------------------------------------------------------------- patch alignment
+def test_patches_are_re_aligned_through_an_affine_warp_and_a_change_of_exposure():
+    """A patch seen 15 % larger, sheared and turned, under another gain and offset: the
+    aligner finds the point it was born on to a few hundredths of a pixel from where KLT
+    would leave it (up to 2 px off); a patch of other texture is refused and left alone."""
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (400, 500)).astype(np.float32), (0, 0), 2.0)
+    a = np.array([[1.15, 0.08], [-0.05, 0.95]])
+    offset = np.array([3.3, -2.2]) + (np.eye(2) - a) @ [250.0, 200.0]
+    later = cv2.warpAffine(texture, np.column_stack([a, offset]), (500, 400), flags=cv2.INTER_CUBIC) * 0.8 + 20
+    born = rng.uniform(100, 300, (40, 2))
+    truth = born @ a.T + offset
+    aligner = PatchAligner()
+    aligner.add(texture, np.arange(40), born)
+    start = truth + rng.uniform(-1.4, 1.4, truth.shape)
+    refined, ok = aligner.refine(later.astype(np.float32), np.arange(40), start)
+    assert ok.mean() >= 0.9
+    assert np.median(np.linalg.norm(refined[ok] - truth[ok], axis=1)) < 0.03
+    assert np.all(refined[~ok] == start[~ok])  # a failure keeps KLT's answer
+
+    elsewhere = cv2.GaussianBlur(rng.uniform(0, 255, (400, 500)).astype(np.float32), (0, 0), 2.0)
+    refined, ok = aligner.refine(elsewhere, np.arange(40), start)
+    assert not ok.any() and np.all(refined == start)
+
+
 # ---------------------------------------------------------------------------- bundle adjustment
 def perturbed_window(seed: int = 5) -> tuple[Map, SyntheticTracks, list[Transform], np.ndarray]:
     """Five anchored keyframes 10 cm apart, 1 cm off in position, seeing points 3 cm off,
@@ -238,8 +264,14 @@ def test_bundle_adjustment_pulls_a_perturbed_window_back_onto_the_target():
     solution = solve(problem, BundleOptions(max_iterations=30), CAL.fx)
     assert solution.final_rms_px < solution.initial_rms_px / 10
     assert apply_solution(world_map, solution)
-    after = np.median(np.linalg.norm(np.array([world_map.points[int(t)] for t in ids]) - source.points[ids], axis=1))
-    assert after < before / 3  # depth from a 40 cm baseline at 2-5 m: ~1 cm is the noise floor
+    after = np.array([world_map.points[int(t)] for t in ids]) - source.points[ids]
+    # Across the rays the points come back to a few millimetres. Along them they do not:
+    # the depth of points 5-6 m away from a 40 cm baseline follows that baseline's scale,
+    # which only the target's corners fix (2 mm in 40 cm is 3 cm at 6 m).
+    rays = source.points[ids] - poses[2].translation
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    across = after - np.einsum("ij,ij->i", after, rays)[:, None] * rays
+    assert np.median(np.linalg.norm(across, axis=1)) < before / 10
     pose_errors = [np.linalg.norm(kf.T_world_camera.translation - p.translation)
                    for kf, p in zip(world_map.keyframes.values(), poses, strict=True)]
     assert max(pose_errors) < 0.003  # metres: held by the target's corners
@@ -251,18 +283,24 @@ def test_bundle_adjustment_pulls_a_perturbed_window_back_onto_the_target():
 @pytest.mark.parametrize("seed", [5, 6, 7])
 def test_our_solver_reaches_the_same_solution_as_scipys(seed):
     """The Schur-complement Levenberg-Marquardt (the default) against SciPy's
-    least_squares on the same window: as low a reprojection error and the same poses to a
-    fraction of a millimetre. Its speed is measured by ``python -m bench tracker``."""
+    least_squares on the same window: at least as low a reprojection error, the poses
+    within a millimetre or two, the same dropped points. They are not closer because
+    SciPy's LSMR steps stop short along the window's weak direction (its scale, which only
+    the target's corners fix): ours goes on to the minimum, and from there a second solve
+    finds nothing more. Its speed is measured by ``python -m bench tracker``."""
     world_map, _, poses, _ = perturbed_window(seed)
     problem = build_problem(world_map, BundleOptions(window_keyframes=5))
     ours = solve(problem, BundleOptions(solver="schur"), CAL.fx)
     scipys = solve(problem, BundleOptions(solver="scipy"), CAL.fx)
     assert ours.final_rms_px < ours.initial_rms_px / 10
-    assert ours.final_rms_px <= scipys.final_rms_px * 1.01
+    assert ours.final_rms_px <= scipys.final_rms_px
     for a, b in zip(ours.T_world_camera, scipys.T_world_camera, strict=True):
-        assert np.linalg.norm(a.translation - b.translation) < 2e-4
-        assert np.degrees(a.rotation_angle_to(b)) < 0.01
+        assert np.linalg.norm(a.translation - b.translation) < 2e-3
+        assert np.degrees(a.rotation_angle_to(b)) < 0.05
     assert set(ours.bad_point_ids) == set(scipys.bad_point_ids)
+    assert apply_solution(world_map, ours)
+    again = solve(build_problem(world_map, BundleOptions(window_keyframes=5)), BundleOptions(solver="schur"), CAL.fx)
+    assert again.final_rms_px > ours.final_rms_px * 0.999
 
 
 def test_our_solver_refines_points_alone_when_every_pose_is_held():

@@ -2,14 +2,14 @@
 
 Two solvers (``BundleOptions.solver``), both on the analytic Jacobian (``_jacobian_blocks``):
 
-- our Levenberg-Marquardt on the Schur complement (``schur_lm``): each observation
-  touches one pose and one point, so the points are eliminated block by block and a step
-  costs a few vectorised NumPy products; ~4x faster than SciPy's on the same windows.
-  The daemon's, in the background: there a solution that lands frames late costs more
-  accuracy than anything else.
-- SciPy's ``least_squares`` (trf, LSMR on the sparse Jacobian): in the frame loop
-  (``cubeloc track``), where time is free; its truncated steps measured more accurate
-  when applied at once (docs/tracker.md has both comparisons).
+- ``"schur"``, the default: our Levenberg-Marquardt on the Schur complement
+  (``schur_lm``). Each observation touches one pose and one point, so the points are
+  eliminated block by block and a step costs a few vectorised NumPy products; ~4x faster
+  than SciPy's on the same windows, which matters most in the background, where a
+  solution that lands frames late costs accuracy.
+- ``"scipy"``: SciPy's ``least_squares`` (trf, LSMR on the sparse Jacobian), the former
+  solver, kept as the reference the tests compare ours with (docs/tracker.md has the
+  comparisons).
 
 GTSAM or Ceres would be as fast but add a large binary dependency for a problem of a few
 hundred points and a dozen keyframes.
@@ -156,8 +156,7 @@ def _solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleS
     # slowly from a few pixels off (measured: ~100 evaluations against ~10), so each round
     # solves a plain weighted problem with Huber weights from the previous round's residuals.
     evaluations = 0
-    solver = options.solver if options.solver != "auto" else ("schur" if options.background else "scipy")
-    weighted_round = _round_with_scipy if solver == "scipy" else _round_with_schur
+    weighted_round = _round_with_scipy if options.solver == "scipy" else _round_with_schur
     for _ in range(options.robust_rounds):
         per_pair = np.linalg.norm(model.residuals(x).reshape(-1, 2), axis=1)
         weights = np.sqrt(np.minimum(1.0, options.huber_px / np.maximum(per_pair, 1e-12)))

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from positioning.tracking.options import FeatureOptions
+from positioning.tracking.patch_alignment import PatchAligner
 from positioning.tracking.types import Tracks
 
 
@@ -41,17 +42,28 @@ def find_corners(image: np.ndarray, count: int, options: FeatureOptions, mask: n
 class KltFrontEnd:
     def __init__(self, options: FeatureOptions | None = None) -> None:
         self.options = options or FeatureOptions()
+        alignment = self.options.alignment
+        self._aligner = PatchAligner(alignment) if alignment is not None else None
         self.reset()
 
     def reset(self) -> None:
         self._previous: np.ndarray | None = None  # the previous image
+        self._previous_float: np.ndarray | None = None  # the same as float32, for the aligner
         self._image_shape: tuple[int, int] | None = None
         self.ids = np.zeros(0, np.int64)
         self.pixels = np.zeros((0, 2), np.float32)
         self._next_id = 0
+        if self._aligner is not None:
+            self._aligner.reset()
 
     def _keep(self, keep: np.ndarray) -> None:
         self.ids, self.pixels = self.ids[keep], self.pixels[keep]
+        if self._aligner is not None:
+            self._aligner.keep_only(self.ids)
+
+    def _set_previous(self, image: np.ndarray) -> None:
+        self._previous, self._image_shape = image, image.shape
+        self._previous_float = image.astype(np.float32) if self._aligner is not None else None
 
     @property
     def tracks(self) -> Tracks:
@@ -66,8 +78,8 @@ class KltFrontEnd:
         # builds its own pyramid: a millisecond or two per image at 1280x1024.
         if self._previous is None or len(self.ids) == 0 or image.shape != self._image_shape:
             if image.shape != self._image_shape:  # a new camera mode: nothing carries over
-                self.ids, self.pixels = np.zeros(0, np.int64), np.zeros((0, 2), np.float32)
-            self._previous, self._image_shape = image, image.shape
+                self._keep(np.zeros(len(self.ids), bool))
+            self._set_previous(image)
             return self.tracks
         window = (o.window_px, o.window_px)
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
@@ -97,7 +109,13 @@ class KltFrontEnd:
         )
         self.pixels = forward.astype(np.float32)
         self._keep(keep)
-        self._previous, self._image_shape = image, image.shape
+        self._set_previous(image)
+        if self._aligner is not None and len(self.ids):
+            refined, aligned = self._aligner.refine(self._previous_float, self.ids, self.pixels)
+            self.pixels = refined.astype(np.float32)
+            # no longer like its birth patch (occluded, or seen too obliquely): it goes on
+            # from here, with this frame's patch as its template
+            self._aligner.add(self._previous_float, self.ids[~aligned], self.pixels[~aligned])
         return self.tracks
 
     def detect(self, image: np.ndarray, exclude_polygon: np.ndarray | None = None) -> Tracks:
@@ -132,8 +150,11 @@ class KltFrontEnd:
         return Tracks(ids, pixels.astype(np.float64))
 
     def _append(self, ids: np.ndarray, pixels: np.ndarray) -> None:
+        """New tracks in the image last tracked."""
         self.ids = np.concatenate([self.ids, ids])
         self.pixels = np.concatenate([self.pixels, pixels])
+        if self._aligner is not None and self._previous_float is not None:
+            self._aligner.add(self._previous_float, ids, pixels)
 
     def adopt(self, ids: np.ndarray, pixels: np.ndarray) -> None:
         """Follow the given (existing) track ids from ``pixels``: after relocalisation,

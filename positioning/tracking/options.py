@@ -11,6 +11,17 @@ from typing import Literal
 
 
 @dataclass(frozen=True)
+class AlignmentOptions:
+    """Each track re-aligned to the patch it was born on (patch_alignment.py)."""
+
+    radius_px: int = 10  # the template is (2r+1)^2 pixels, as KLT's 21 x 21 window
+    iterations: int = 4  # Gauss-Newton steps per frame, from where KLT ended
+    min_correlation: float = 0.9  # normalised cross-correlation of the aligned patch
+    max_shift_px: float = 2.0  # from where KLT ended
+    scale_range: tuple[float, float] = (0.6, 1.6)  # singular values of the warp's linear part
+
+
+@dataclass(frozen=True)
 class FeatureOptions:
     """Shi-Tomasi corners tracked with pyramidal Lucas-Kanade (KLT)."""
 
@@ -25,6 +36,8 @@ class FeatureOptions:
     fb_check_levels: int = 0  # pyramid levels of the backward pass (it starts at the answer)
     target_margin_px: int = 20  # no corners within this of the target's image outline
     border_px: int = 16  # no corners this close to the image edge
+    # None: KLT alone (its tracks slide off their corners as the patch deforms)
+    alignment: AlignmentOptions | None = field(default_factory=AlignmentOptions)
 
 
 @dataclass(frozen=True)
@@ -52,13 +65,15 @@ class BundleOptions:
     # frames: 8.7 -> 6.2 mm; in the frame loop 4.6 -> 4.2 mm).
     anchored_keyframes: int = 3
     # "schur": our Levenberg-Marquardt on the Schur complement (schur_lm.py), ~4x faster;
-    # "scipy": SciPy's least_squares (trf, LSMR). "auto": ours in the background, where a
-    # solution that lands late costs more than anything else (live, paper, 10 fps: median
-    # 4.4 mm over 10 runs against SciPy's 9.6 over 8), SciPy's in the frame loop, where time
-    # is free and its truncated steps measured more accurate (paper 20 s, 5 seeds: 2.4-3.5
-    # against 3.1-5.0 mm).
-    solver: Literal["auto", "schur", "scipy"] = "auto"
-    min_damping: float = 1e3  # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py)
+    # "scipy": SciPy's least_squares (trf, LSMR), the reference. With tracks aligned to
+    # their birth patches they are as accurate applied at once (paper 20 s, 5 seeds: 0.44-0.91
+    # against 0.35-0.98 mm), and ours is far better applied late (3 frames: 0.43-1.01
+    # against 2.85-4.03 mm).
+    solver: Literal["schur", "scipy"] = "schur"
+    # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py). A floor of
+    # 1e3 held far points' depths while KLT tracks drifted; with aligned tracks it only
+    # slows convergence (paper 20 s, 3 frames late: 3.9-12.3 mm with it, 0.43-1.01 without).
+    min_damping: float = 0.0
     max_iterations: int = 10  # residual evaluations per robust round (SciPy max_nfev)
     robust_rounds: int = 2  # reweighting rounds (Huber weights from the last residuals)
     huber_px: float = 1.5

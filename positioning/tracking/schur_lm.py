@@ -10,14 +10,10 @@ the ~1000 points. One step costs a few vectorised NumPy products, where SciPy's
 
 The damping update follows Nielsen (Madsen, Nielsen & Tingleff, "Methods for non-linear
 least squares problems", 2004, section 3.2). The damping is Levenberg's (``damping * I``,
-not Marquardt's diagonal of J^T J) and has a floor, ``min_damping``: in pixels^2 per
-(metre or radian)^2 it is negligible against what the observations say about the poses
-and a point's position across its rays (1e5 and more), but it holds a far point's depth,
-which KLT tracks with drift constrain only weakly, near its triangulated value. Measured
-on the paper's sequence (5 noise seeds, the solution one frame late, docs/tracker.md):
-Marquardt's scaling, which lets those depths move freely, tracked 5-7 mm RMS; this
-damping 2.6-3.8 mm, like SciPy's truncated LSMR (3.0-3.6 mm), in a quarter of its time.
-On tracks with independent noise and no drift the floor is a cost (docs/tracker.md).
+not Marquardt's diagonal of J^T J) and may have a floor, ``min_damping`` (pixels^2 per
+(metre or radian)^2). The default has none: a floor of 1e3 once held far points' depths
+near their triangulated values while KLT tracks drifted, and stopped helping once the
+tracks were aligned to their birth patches (patch_alignment.py; docs/tracker.md).
 """
 
 from __future__ import annotations
@@ -62,7 +58,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
     """Minimise 0.5 |residuals(x)|^2 from ``x0``, with at most ``max_evaluations``
     residual evaluations after the first; stops early when a step lowers the cost by less
     than ``relative_tolerance`` of it. The damping (added to J^T J as ``damping * I``)
-    starts at ``min_damping`` (at least 1) and never goes below it."""
+    starts at ``min_damping`` or 1, whichever is more, and never goes below ``min_damping``."""
     normal = _NormalEquations(structure)
     x = np.asarray(x0, dtype=np.float64).copy()
     r = residuals(x)
