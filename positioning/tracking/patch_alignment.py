@@ -46,6 +46,7 @@ class PatchAligner:
     def __init__(self, options: AlignmentOptions | None = None) -> None:
         self.options = options or AlignmentOptions()
         self._grid = _grid(self.options.radius_px)
+        self._moments = np.column_stack([self._grid, np.ones(len(self._grid), np.float32)])  # (P, 3): x, y, 1
         wide = _grid(self.options.radius_px + 1)
         side = 2 * self.options.radius_px + 3
         inner = np.zeros((side, side), bool)
@@ -57,7 +58,10 @@ class PatchAligner:
         p = len(self._grid)
         self.ids = np.zeros(0, np.int64)
         self._template = np.zeros((0, p), np.float32)  # zero-mean, unit-norm
-        self._steepest_t = np.zeros((0, 6, p), np.float32)  # transposed: the products run 2x faster
+        # the template's gradients: with the grid they make the steepest-descent images,
+        # (N, P, 6), which are not stored (3x the memory, and copied whenever tracks end)
+        self._gx = np.zeros((0, p), np.float32)
+        self._gy = np.zeros((0, p), np.float32)
         self._hessian_inv = np.zeros((0, 6, 6), np.float32)
         self._linear = np.zeros((0, 2, 2), np.float32)  # the warp's linear part, per track
 
@@ -78,19 +82,17 @@ class PatchAligner:
         gx, gy = gx.reshape(len(ids), -1), gy.reshape(len(ids), -1)
         x, y = self._grid[:, 0], self._grid[:, 1]
         # d(warp)/d(p) for x' = (1+p0) x + p2 y + p4, y' = p1 x + (1+p3) y + p5
+        centred = template - template.mean(axis=1, keepdims=True)
+        # the error is taken against the template scaled to unit contrast: so are its gradients
+        scale = 1.0 / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-6)
+        gx, gy = gx * scale, gy * scale
         steepest = np.stack([gx * x, gy * x, gx * y, gy * y, gx, gy], axis=2)
-        hessian = np.einsum("npi,npj->nij", steepest, steepest)
+        hessian = steepest.transpose(0, 2, 1) @ steepest
         hessian += np.eye(6, dtype=np.float32) * 1e-3 * np.trace(hessian, axis1=1, axis2=2)[:, None, None]
-        mean = template.mean(axis=1, keepdims=True)
-        centred = template - mean
-        norm = np.linalg.norm(centred, axis=1, keepdims=True)
         self.ids = np.concatenate([self.ids, ids])
-        self._template = np.concatenate([self._template, centred / np.maximum(norm, 1e-6)])
-        # the error is taken against the template scaled back to its own contrast
-        self._steepest_t = np.concatenate([self._steepest_t, np.ascontiguousarray(
-            (steepest / np.maximum(norm, 1e-6)[:, :, None]).transpose(0, 2, 1))])
-        self._hessian_inv = np.concatenate([self._hessian_inv, np.linalg.inv(
-            hessian / np.maximum(norm, 1e-6)[:, :, None] ** 2).astype(np.float32)])
+        self._template = np.concatenate([self._template, centred * scale])
+        self._gx, self._gy = np.concatenate([self._gx, gx]), np.concatenate([self._gy, gy])
+        self._hessian_inv = np.concatenate([self._hessian_inv, np.linalg.inv(hessian).astype(np.float32)])
         self._linear = np.concatenate([self._linear, np.tile(np.eye(2, dtype=np.float32), (len(ids), 1, 1))])
 
     def drop(self, ids: np.ndarray) -> None:
@@ -101,8 +103,10 @@ class PatchAligner:
         self._keep(np.isin(self.ids, ids))
 
     def _keep(self, keep: np.ndarray) -> None:
+        if keep.all():
+            return  # the usual case: no copies of the big arrays
         self.ids, self._template = self.ids[keep], self._template[keep]
-        self._steepest_t, self._hessian_inv = self._steepest_t[keep], self._hessian_inv[keep]
+        self._gx, self._gy, self._hessian_inv = self._gx[keep], self._gy[keep], self._hessian_inv[keep]
         self._linear = self._linear[keep]
 
     def _warped(self, image: np.ndarray, linear: np.ndarray, shift: np.ndarray) -> np.ndarray:
@@ -137,8 +141,14 @@ class PatchAligner:
         for _ in range(o.iterations):
             warped = self._warped(image, linear, shift)
             warped /= np.maximum(np.linalg.norm(warped, axis=1, keepdims=True), 1e-6)
-            error = warped - self._template  # both zero-mean and unit-norm: gain and offset fitted
-            gradient = (self._steepest_t @ error[:, :, None])[:, :, 0]
+            # both zero-mean and unit-norm (gain and offset fitted); their product is the
+            # correlation, checked below where the last step started (one sampling less)
+            correlation = np.einsum("np,np->n", warped, self._template)
+            error = warped - self._template
+            # steepest-descent images times the error, from the gradients: (x, y, 1) moments
+            along_x, along_y = (self._gx * error) @ self._moments, (self._gy * error) @ self._moments
+            gradient = np.stack([along_x[:, 0], along_y[:, 0], along_x[:, 1], along_y[:, 1], along_x[:, 2],
+                                 along_y[:, 2]], axis=1)
             step = np.einsum("nij,nj->ni", self._hessian_inv, gradient)
             # inverse composition: warp <- warp o (1 + step)^-1, the 2 x 2 inverse written out
             p0, p1, p2, p3 = 1 + step[:, 0], step[:, 1], step[:, 2], 1 + step[:, 3]
@@ -147,8 +157,6 @@ class PatchAligner:
             t_inv = -np.einsum("nij,nj->ni", a_inv, step[:, 4:6])
             shift = shift + np.einsum("nij,nj->ni", linear, t_inv)
             linear = np.einsum("nij,njk->nik", linear, a_inv)
-        warped = self._warped(image, linear, shift)
-        correlation = np.einsum("np,np->n", warped, self._template) / np.maximum(np.linalg.norm(warped, axis=1), 1e-6)
         with np.errstate(invalid="ignore"):
             singular = np.linalg.svd(np.nan_to_num(linear), compute_uv=False)
             good = (
