@@ -22,7 +22,12 @@ from positioning.target import make_cube
 from positioning.tracking.bundle import apply_solution, build_problem, solve
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
-from positioning.tracking.options import AlignmentOptions, BundleOptions, InitOptions, TrackerOptions
+from positioning.tracking.options import (
+    AlignmentOptions,
+    BundleOptions,
+    InitOptions,
+    TrackerOptions,
+)
 from positioning.tracking.patch_alignment import PatchAligner
 from positioning.tracking.tracker import Tracker
 from positioning.tracking.twoview import triangulate, undistort
