@@ -66,15 +66,15 @@ class BundleOptions:
     # (synthetic geometry, 6 seeds, solution 5 frames late: 5.8 -> 4.3 mm RMS ATE; 10
     # frames: 8.7 -> 6.2 mm; in the frame loop 4.6 -> 4.2 mm).
     anchored_keyframes: int = 3
-    # "schur": our Levenberg-Marquardt on the Schur complement (schur_lm.py), ~4x faster;
-    # "scipy": SciPy's least_squares (trf, LSMR), the reference. With tracks aligned to
-    # their birth patches they are as accurate applied at once (paper 20 s, 5 seeds: 0.44-0.91
-    # against 0.35-0.98 mm), and ours is far better applied late (3 frames: 0.43-1.01
-    # against 2.85-4.03 mm).
+    # "schur": our Levenberg-Marquardt on the Schur complement (schur_lm.py); "scipy":
+    # SciPy's least_squares (trf, LSMR), the reference. Applied at once they are as
+    # accurate (paper 20 s, 5 seeds: 0.37-0.68 against 0.35-0.98 mm); applied 3 frames
+    # late ours is far better (0.52-0.91 against 2.85-4.03 mm), and live ours takes ~36 ms
+    # a window where SciPy's many small calls, waiting for the GIL, take 0.7-0.9 s.
     solver: Literal["schur", "scipy"] = "schur"
     # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py). A floor of
     # 1e3 held far points' depths while KLT tracks drifted; with aligned tracks it only
-    # slows convergence (paper 20 s, 3 frames late: 3.9-12.3 mm with it, 0.43-1.01 without).
+    # slows convergence (paper 20 s, 3 frames late: 3.9-12.3 mm with it, 0.52-0.91 without).
     min_damping: float = 0.0
     max_iterations: int = 10  # residual evaluations per robust round (SciPy max_nfev)
     robust_rounds: int = 2  # reweighting rounds (Huber weights from the last residuals)
