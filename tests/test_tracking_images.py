@@ -10,12 +10,12 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
 from calib.camera_info import CameraCalibration, paper_camera
 from drivers.sequence import read_mono_png, read_sequence_index
+from fakes.optics import project, undistort_pixels
 from fakes.room import default_room
 from fakes.sequence import write_synthetic_sequence
 from positioning.estimator import PoseState
@@ -25,7 +25,6 @@ from positioning.target import make_cube
 from positioning.tracking.features import KltFrontEnd
 from positioning.tracking.options import BundleOptions, FeatureOptions
 from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-from positioning.tracking.twoview import undistort
 from positioning.trajectory_io import StampedPose, read_tum
 
 SYNC = ProcessorOptions()
@@ -100,17 +99,14 @@ def _wall_points(pose: Transform, pixels: np.ndarray, calibration: CameraCalibra
     """Where the rays through ``pixels`` meet the synthetic room's walls (the camera is
     inside the box, so each ray leaves through the nearest wall ahead)."""
     room = default_room()
-    rays = np.column_stack([undistort(pixels, calibration), np.ones(len(pixels))]) @ pose.rotation.T
+    rays = np.column_stack([undistort_pixels(pixels, calibration), np.ones(len(pixels))]) @ pose.rotation.T
     with np.errstate(divide="ignore"):
         exits = np.maximum((room.upper - pose.translation) / rays, (room.lower - pose.translation) / rays)
     return pose.translation + rays * exits.min(axis=1)[:, None]
 
 
 def _pixels_of(pose: Transform, points: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
-    in_camera = pose.inverse().apply(points)
-    pixels, _ = cv2.projectPoints(in_camera, np.zeros(3), np.zeros(3), calibration.camera_matrix,
-                                  calibration.distortion)
-    return pixels.reshape(-1, 2)
+    return project(pose.inverse().apply(points), calibration)
 
 
 @pytest.mark.parametrize("aligned", [True, False])

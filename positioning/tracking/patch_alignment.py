@@ -41,6 +41,15 @@ def _sample(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarr
                      borderMode=cv2.BORDER_REPLICATE)
 
 
+def _positions(keys: np.ndarray, among: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each of ``keys`` is in ``among`` (unique ids), and whether it is there at all."""
+    if len(among) == 0:
+        return np.zeros(len(keys), np.int64), np.zeros(len(keys), bool)
+    order = np.argsort(among)
+    at = order[np.clip(np.searchsorted(among, keys, sorter=order), 0, len(among) - 1)]
+    return at, among[at] == keys
+
+
 class PatchAligner:
     """Templates of live tracks, and the affine warps that map them into the last frame."""
 
@@ -72,7 +81,6 @@ class PatchAligner:
         ids = np.asarray(ids, np.int64)
         if len(ids) == 0:
             return
-        self.drop(ids)
         pixels = np.asarray(pixels, np.float32).reshape(-1, 2)
         side = self._side
         wide = _sample(image, pixels[:, :1] + self._wide[:, 0], pixels[:, 1:] + self._wide[:, 1])
@@ -90,15 +98,20 @@ class PatchAligner:
         steepest = np.stack([gx * x, gy * x, gx * y, gy * y, gx, gy], axis=2)
         hessian = steepest.transpose(0, 2, 1) @ steepest
         hessian += np.eye(6, dtype=np.float32) * 1e-3 * np.trace(hessian, axis1=1, axis2=2)[:, None, None]
-        self.ids = np.concatenate([self.ids, ids])
-        self._template = np.concatenate([self._template, centred * scale])
-        self._gx, self._gy = np.concatenate([self._gx, gx]), np.concatenate([self._gy, gy])
-        self._hessian_inv = np.concatenate([self._hessian_inv, np.linalg.inv(hessian).astype(np.float32)])
-        self._linear = np.concatenate([self._linear, np.tile(np.eye(2, dtype=np.float32), (len(ids), 1, 1))])
+        new = (centred * scale, gx, gy, np.linalg.inv(hessian).astype(np.float32),
+               np.tile(np.eye(2, dtype=np.float32), (len(ids), 1, 1)))
+        # a track with a template already (re-templated after a failed alignment, a few a
+        # frame) is overwritten in place: dropping and appending would copy every array
+        row, held = _positions(ids, self.ids)
+        for stored, fresh in zip(self._arrays(), new, strict=True):
+            stored[row[held]] = fresh[held]
+        appended = [np.concatenate([stored, fresh[~held]]) for stored, fresh in zip(self._arrays(), new, strict=True)]
+        self._template, self._gx, self._gy, self._hessian_inv, self._linear = appended
+        self.ids = np.concatenate([self.ids, ids[~held]])
 
-    def drop(self, ids: np.ndarray) -> None:
-        if len(self.ids) and len(ids):
-            self._keep(~np.isin(self.ids, ids))
+    def _arrays(self) -> tuple[np.ndarray, ...]:
+        """The per-track arrays, in ``ids``' order."""
+        return self._template, self._gx, self._gy, self._hessian_inv, self._linear
 
     def keep_only(self, ids: np.ndarray) -> None:
         self._keep(np.isin(self.ids, ids))
@@ -106,9 +119,8 @@ class PatchAligner:
     def _keep(self, keep: np.ndarray) -> None:
         if keep.all():
             return  # the usual case: no copies of the big arrays
-        self.ids, self._template = self.ids[keep], self._template[keep]
-        self._gx, self._gy, self._hessian_inv = self._gx[keep], self._gy[keep], self._hessian_inv[keep]
-        self._linear = self._linear[keep]
+        self.ids = self.ids[keep]
+        self._template, self._gx, self._gy, self._hessian_inv, self._linear = (a[keep] for a in self._arrays())
 
     def _warped(self, image: np.ndarray, linear: np.ndarray, shift: np.ndarray) -> np.ndarray:
         """The image under each template's pixels, (N, P), zero-mean. (Written out
@@ -132,9 +144,7 @@ class PatchAligner:
             return refined, ok
         # Work in the templates' own order (no copies of the big arrays); ``at`` is where
         # each template's track is in ``ids``. Templates without a track here sit still.
-        order = np.argsort(ids)
-        at = order[np.clip(np.searchsorted(ids, self.ids, sorter=order), 0, len(ids) - 1)]
-        present = ids[at] == self.ids
+        at, present = _positions(self.ids, ids)
         if not present.any():
             return refined, ok
         linear = self._linear.astype(np.float64)
