@@ -20,7 +20,8 @@ The daemon runs on it unchanged (camera source ``synthetic:TRAJECTORY[?OPTIONS]`
 ``target=FILE``        target file to render (default: the 18 cm cube, ids 0-5)
 =====================  ===================================================================
 
-``TRAJECTORY`` is a name (``static``, ``orbit``, ``paper``, ``room_walk``) or a TUM file.
+``TRAJECTORY`` is a name (``static``, ``orbit``, ``paper``, ``room_walk``, ``spin`` or a
+robot-motion scenario of ``fakes.scenarios``, with its effects) or a TUM file.
 Example: ``synthetic:paper?seconds=20&fps=10&seed=1&realtime=1``.
 
 Timestamps: the trajectory's own stamps (from ``fakes.trajectories.EPOCH_NS``), or with
@@ -56,6 +57,7 @@ from drivers.base import (
 )
 from fakes.render import render_view
 from fakes.room import Room, default_room
+from fakes.scenarios import Effects, scenario_effects
 from fakes.trajectories import TrajectoryError, make_trajectory
 from positioning.geometry import Transform
 from positioning.target import Target, load_target, make_cube
@@ -94,6 +96,7 @@ class SyntheticCamera(CameraBase):
         realtime: bool = False,
         loop: bool = False,
         options: RenderOptions | None = None,
+        effects: Effects | None = None,
     ) -> None:
         if not trajectory:
             raise CameraNotFound("synthetic camera: the trajectory has no poses")
@@ -105,6 +108,7 @@ class SyntheticCamera(CameraBase):
         self.realtime = realtime
         self.loop = loop
         self.options = options or RenderOptions()
+        self.effects = effects or Effects()
         self._name = name
         for k, pose in enumerate(self.trajectory):
             if not self.room.contains(pose.T_world_camera.translation):
@@ -212,9 +216,12 @@ class SyntheticCamera(CameraBase):
         self._opened = False
 
     def render(self, index: int) -> np.ndarray:
-        """The frame with index ``index`` (counted over loops), noise seeded by (seed, index)."""
+        """The frame with index ``index`` (counted over loops), noise seeded by (seed, index),
+        with the effects of its moment (passers-by, exposure steps, exposure-long blur)."""
+        i = index % len(self.trajectory)
+        t = (self._stamps[i] - self._stamps[0]) / 1e9
         return render_view(
-            self.trajectory[index % len(self.trajectory)].T_world_camera,
+            self.trajectory[i].T_world_camera,
             calibration=self.calibration,
             target=self.target,
             room=self.room,
@@ -225,9 +232,41 @@ class SyntheticCamera(CameraBase):
             hidden_tags=self.options.hidden_tags,
             glare_tag=self.options.glare_tag,
             supersample=self.options.supersample,
-            exposure_gain=self._exposure_gain(),
+            exposure_gain=self._exposure_gain() * self.effects.gain_at(t),
+            extra_objects=self.effects.objects_at(t),
+            exposure_poses=self._exposure_poses(i),
             **self.options.extra,
         )
+
+    def _exposure_poses(self, i: int) -> tuple[Transform, ...]:
+        """Poses over the exposure (``effects.exposure_s``, centred on the frame's time, so
+        the ground truth is the middle of the smear), one per ~0.7 px of image motion (at
+        most 12), interpolated between the trajectory's neighbouring poses."""
+        exposure = self.effects.exposure_s
+        if exposure <= 0 or len(self.trajectory) < 2:
+            return ()
+        ends = [self._pose_at(i, -exposure / 2), self._pose_at(i, exposure / 2)]
+        fx = float(self.calibration.camera_matrix[0, 0])
+        motion_px = fx * (ends[0].rotation_angle_to(ends[1])
+                          + np.linalg.norm(ends[1].translation - ends[0].translation) / 1.0)
+        count = int(np.clip(np.ceil(motion_px / 0.7), 1, 12))
+        if count == 1:
+            return ()
+        return tuple(self._pose_at(i, exposure * ((k + 0.5) / count - 0.5)) for k in range(count))
+
+    def _pose_at(self, i: int, offset_s: float) -> Transform:
+        """The pose ``offset_s`` from frame ``i``, on the segment to its neighbour (rotation
+        along the geodesic, position linear)."""
+        j = min(i + 1, len(self.trajectory) - 1) if offset_s >= 0 else max(i - 1, 0)
+        if j == i:
+            j = i - 1 if offset_s >= 0 else i + 1
+        a, b = self.trajectory[i], self.trajectory[j]
+        fraction = offset_s * 1e9 / (b.stamp_ns - a.stamp_ns)
+        step = a.T_world_camera.inverse() @ b.T_world_camera
+        rotation = Transform.from_rvec_tvec(step.rvec() * fraction, np.zeros(3))
+        position = a.T_world_camera.translation + fraction * (b.T_world_camera.translation
+                                                              - a.T_world_camera.translation)
+        return Transform((a.T_world_camera @ rotation).rotation, position)
 
     # --- ground truth ------------------------------------------------------------------
     def ground_truth_at(self, stamp_ns: int) -> Transform | None:
@@ -399,6 +438,7 @@ def open_synthetic_source(argument: str, settings: CameraSettings) -> SyntheticC
         realtime=_flag(options, "realtime") if "realtime" in options else False,
         loop=_flag(options, "loop") if "loop" in options else False,
         options=render,
+        effects=scenario_effects(name, trajectory),
     )
 
 

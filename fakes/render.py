@@ -386,6 +386,8 @@ def render_view(
     glare_strength: float = 3.0,
     motion_blur_px: float = 0.0,
     motion_blur_angle_deg: float = 0.0,
+    extra_objects: tuple[tuple[Quad, ...], ...] = (),
+    exposure_poses: tuple[Transform, ...] = (),
 ) -> np.ndarray:
     """A (H, W) uint8 Mono8 frame of ``target`` seen from ``T_world_camera``.
 
@@ -398,7 +400,11 @@ def render_view(
     corners within ~0.03 px). ``exposure_gain`` scales brightness before clipping,
     ``blur_sigma_px`` is defocus, ``motion_blur_px`` a linear smear at
     ``motion_blur_angle_deg``. ``noise_sigma`` is Gaussian read noise in DN drawn from
-    ``seed``. Raises ValueError if the camera is outside the room.
+    ``seed``. ``extra_objects`` are more objects in the room (each a group of quads:
+    a passer-by, a painted panel). ``exposure_poses``, when given, are camera poses spread
+    over the exposure time: the frame is the mean of their renders, the motion blur of a
+    moving camera integrated over its exposure (``motion_blur_px`` is a fixed smear
+    instead). Raises ValueError if the camera is outside the room.
     """
     calibration = calibration or paper_camera()
     target = target or _default_cube()
@@ -410,9 +416,15 @@ def render_view(
         start = len(quads)
         quads.extend(box_quads(box, room_obj.texel_m))
         objects.append(tuple(range(start, len(quads))))
+    for group in extra_objects:
+        start = len(quads)
+        quads.extend(group)
+        objects.append(tuple(range(start, len(quads))))
     radiance = render_radiance(
         T_world_camera, calibration, room_obj, tuple(quads), tuple(objects), supersample
-    )
+    ) if not exposure_poses else np.mean([
+        render_radiance(pose, calibration, room_obj, tuple(quads), tuple(objects), supersample)
+        for pose in exposure_poses], axis=0, dtype=np.float32)
     return apply_sensor(
         radiance,
         noise_sigma=noise_sigma,

@@ -29,6 +29,7 @@ from cubeloc.errors import InputFileError
 from drivers.sequence import SequenceWriter
 from fakes.camera import RenderOptions, SyntheticCamera
 from fakes.room import Room
+from fakes.scenarios import scenario_effects
 from fakes.trajectories import make_trajectory
 from positioning.target import Target, make_cube
 from positioning.trajectory_io import write_tum
@@ -65,7 +66,8 @@ def write_synthetic_sequence(
     poses = make_trajectory(trajectory, seconds, fps)
     calibration = calibration or paper_camera()
     camera = SyntheticCamera(
-        poses, name=trajectory, calibration=calibration, target=target, room=room, seed=seed, options=options
+        poses, name=trajectory, calibration=calibration, target=target, room=room, seed=seed, options=options,
+        effects=scenario_effects(trajectory, poses),
     )
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))

@@ -18,6 +18,10 @@ the corner between the +x and -y faces, so three faces are in view.
                 ``seconds`` - 6 s (at least 8), then 2 s held, looking at the cube again
 ==============  ===========================================================================
 
+The robot-motion scenarios (``turn_after_init``, ``spin_in_place``, ``spin_in_place_fast``,
+``spin_on_axis``, ``agile``, ``passers_by``, ``blank_wall``, ``long_lap``) live in
+``fakes.scenarios``, with their own default rates and the effects that go with them.
+
 Poses are smooth: positions and angles are clamped cubic splines through keyframes (zero
 velocity at the ends), or closed-form curves. Stamps start at ``EPOCH_NS``.
 """
@@ -28,12 +32,15 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from cubeloc.errors import CubelocError
+from fakes import scenarios
 from positioning.geometry import Transform, look_at
 from positioning.trajectory_io import StampedPose
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 DEFAULT_FPS = 10.0
-DEFAULT_SECONDS = {"static": 10.0, "orbit": 40.0, "paper": 30.0, "room_walk": 40.0, "spin": 20.0}
+DEFAULT_SECONDS = {"static": 10.0, "orbit": 40.0, "paper": 30.0, "room_walk": 40.0, "spin": 20.0,
+                   **{name: timing[0] for name, timing in scenarios.TIMING.items()}}
+DEFAULT_FPS_OF = {name: timing[1] for name, timing in scenarios.TIMING.items()}
 TRAJECTORIES = tuple(DEFAULT_SECONDS)
 ROOM_WALK_MIN_SECONDS = 30.0
 START_POSITION = np.array([1.5, -1.5, 0.91])  # ~2.3 m from the cube centre, 1 m above the floor
@@ -145,17 +152,21 @@ def _spin(times: np.ndarray, seconds: float) -> list[Transform]:
     return poses
 
 
-_MAKERS = {"static": _static, "orbit": _orbit, "paper": _paper, "room_walk": _room_walk, "spin": _spin}
+_MAKERS = {"static": _static, "orbit": _orbit, "paper": _paper, "room_walk": _room_walk, "spin": _spin,
+           **scenarios.MAKERS}
 
 
 def make_trajectory(name: str, seconds: float | None = None, fps: float | None = None) -> list[StampedPose]:
-    """The named trajectory sampled at ``fps`` for ``seconds`` (defaults per trajectory)."""
+    """The named trajectory sampled at ``fps`` for ``seconds`` (defaults per trajectory:
+    10 fps, 30 for ``agile`` and ``spin_in_place_fast``)."""
     if name not in _MAKERS:
         raise TrajectoryError(f"unknown trajectory {name!r}; known: {', '.join(TRAJECTORIES)}")
     seconds = DEFAULT_SECONDS[name] if seconds is None else float(seconds)
-    fps = DEFAULT_FPS if fps is None else float(fps)
+    fps = DEFAULT_FPS_OF.get(name, DEFAULT_FPS) if fps is None else float(fps)
     if not (np.isfinite(seconds) and seconds > 0):
         raise TrajectoryError(f"--seconds must be a positive number, got {seconds:g}")
+    if name in scenarios.TIMING and seconds < scenarios.TIMING[name][2]:
+        raise TrajectoryError(f"{name} needs --seconds of at least {scenarios.TIMING[name][2]:g} (got {seconds:g})")
     if not (np.isfinite(fps) and 0 < fps <= 1000):
         raise TrajectoryError(f"--fps must be in (0, 1000], got {fps:g}")
     count = max(1, int(np.floor(seconds * fps + 1e-9)))

@@ -103,9 +103,10 @@ class TrackerOptions:
     # anchored keyframes are what holds the map in the target frame, so take more of them
     keyframe_tracked_ratio: float = 0.8  # map points still tracked / at the last keyframe
     keyframe_min_points: int = 150  # fewer tracked map points: make a keyframe now
+    keyframe_starving_points: int = 100  # fewer still: a keyframe on every frame (not every other)
     # low enough that a camera walking forwards and turning keeps its map stocked (room_walk
     # was lost at 1.5 deg); bundle adjustment then refines the depths with more views
-    triangulation_min_parallax_deg: float = 0.7
+    triangulation_min_parallax_deg: float = 0.3
     triangulation_max_reproj_px: float = 2.0
     max_keyframes: int = 40  # older keyframes and the points only they saw are culled
     # target
@@ -116,6 +117,23 @@ class TrackerOptions:
     fuse_target_with_map: bool = False  # target visible: one pose from its corners and the map points
     max_motion_m: float = 0.5  # a tracker pose further than this from the prediction is refused
     max_extrapolation_s: float = 0.5  # the motion model predicts no further ahead than this
+    # too few map points in view (a turn on the spot): held on rays (pose_fit.py)
+    min_hold_rays: int = 30  # tracks without a point, agreeing with one orientation
+    min_hold_ray_fraction: float = 0.6  # ...and that share of them (fewer: parallax or movers)
+    hold_sigma_m: float = 0.01  # the held position's standard deviation at once...
+    hold_sigma_m_per_s: float = 0.05  # ...growing by this per second held
+    max_hold_s: float = 20.0  # longer than this on rays alone: lost
+    max_hold_rotation_sigma_deg: float = 0.5
+    hold_default_depth_m: float = 3.0  # the rays' prior depth when no map point is in view
+    hold_velocity_decay: float = 0.5  # per held frame, of the motion model's translation
+    track_sigma_px: float = 0.3  # a track's noise floor for covariances (KLT + alignment)
+    # the map's drift since the target was last trusted, added to a tracking pose's
+    # covariance (standard deviations)
+    drift_floor_m: float = 0.001
+    drift_per_m: float = 0.003  # position, per metre of path
+    drift_m_per_rad: float = 0.002  # position, per radian turned
+    drift_rad_per_m: float = 0.001  # orientation, per metre of path
+    drift_rad_per_rad: float = 0.002  # orientation, per radian turned
     # relocalisation against keyframes (ORB)
     orb_features: int = 2000  # corners described in a lost frame
     reloc_min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible

@@ -177,9 +177,15 @@ class TrackingProcessor:
             if (self._lost_frames - 1) % self.options.relocalise_every == 0:  # it costs ~4 KLT steps
                 result = self._relocalise(image, stamp_ns, result)
             want = result.estimate is not None
+        elif self.tracker.holding:
+            # held on rays: look for the map's keyframes as when lost, a match ends the hold
+            self._lost_frames += 1
+            if (self._lost_frames - 1) % self.options.relocalise_every == 0:
+                result = self._relocalise(image, stamp_ns, result)
+            want = True
         else:
             want = out.want_features
-        if result.estimate is not None:
+        if result.estimate is not None and not self.tracker.holding:
             self._lost_frames = 0
         if want:
             self._add_features(image, out, result)
@@ -199,6 +205,6 @@ class TrackingProcessor:
         if found is None:
             return lost
         self.front_end.adopt(found.point_ids, found.pixels)
-        self.tracker.relocalised(stamp_ns, found.T_world_camera, Tracks(found.point_ids, found.pixels))
-        estimate = PoseEstimate(found.T_world_camera, PoseState.RELOCALISED, 0, (), 0.0, None)
+        covariance = self.tracker.relocalised(stamp_ns, found.T_world_camera, Tracks(found.point_ids, found.pixels))
+        estimate = PoseEstimate(found.T_world_camera, PoseState.RELOCALISED, 0, (), 0.0, covariance)
         return FrameResult(estimate, "relocalised", f"{len(found.point_ids)} map points found again")

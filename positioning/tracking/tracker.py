@@ -35,6 +35,7 @@ from positioning.tracking import bundle
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.options import TrackerOptions
+from positioning.tracking.pose_fit import Rays, fit_pose
 from positioning.tracking.twoview import project_normalised, triangulate, undistort
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
@@ -76,6 +77,12 @@ class Tracker:
         self._frames_since_keyframe = 0
         self._target_seen = False  # the last frame had a trusted target pose
         self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
+        # track id -> (world camera centre, world unit ray) where the track was born: the
+        # rays that hold the orientation when too few map points are in view
+        self._births: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._holding_since: int | None = None  # stamp of the first frame held on rays
+        self._path_m = 0.0  # path length since the last trusted target frame (drift grows with it)
+        self._turned_rad = 0.0  # and the rotation
 
     def close(self) -> None:
         self._drain_bundle()
@@ -94,7 +101,10 @@ class Tracker:
             return self._initialising(stamp_ns, tracks, xn, trusted)
 
         prediction = self._predict(stamp_ns)
-        tracked, inliers, drop, rms = self._pnp(tracks, xn, prediction)
+        tracked, inliers, drop, rms, covariance = self._pnp(tracks, xn, prediction)
+        held = None
+        if tracked is None and trusted is None and prediction is not None:
+            held = self._hold(stamp_ns, tracks, xn, prediction)
         if trusted is not None:
             pose = trusted.T_world_camera
             state = PoseState.TARGET
@@ -110,31 +120,115 @@ class Tracker:
                 pose = self._fuse(trusted, tracks, xn, pose)
             estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
                                     trusted.covariance)
-        elif tracked is not None:
-            pose = tracked
+        elif tracked is not None or held is not None:
+            pose, covariance = (tracked, covariance) if tracked is not None else held
             state = PoseState.RELOCALISED if self.lost else PoseState.TRACKING
-            estimate = PoseEstimate(pose, state, 0, (), rms, None)
+            estimate = PoseEstimate(pose, state, 0, (), rms, self._with_drift(pose, covariance))
         else:
             self.lost = True
             self._velocity = None
             self._target_seen = False
+            self._holding_since = None
             detail = f"{inliers} map points agree with a pose, {self.options.min_pnp_inliers} needed"
             return TrackerOutput(FrameResult(None, "lost", detail), False, drop)
 
         forced = state is PoseState.RELOCALISED
         self._target_seen = trusted is not None
+        if trusted is not None:
+            self._path_m = self._turned_rad = 0.0
         self.lost = False
+        if held is None:
+            self._holding_since = None
+        self._rebase_rays(pose if held is None else None, tracks.ids, xn)
         self._update_motion(pose, stamp_ns)
         self._frame_pose = pose
+        if held is not None:
+            # no keyframe from a pose whose position is only held: nothing is triangulated
+            # from it; fresh corners keep the rays coming
+            return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays"), True, drop)
         want = self._maybe_keyframe(stamp_ns, pose, tracks, xn, trusted, inliers, forced)
         status = "ok" if state is not PoseState.RELOCALISED else "relocalised"
         return TrackerOutput(FrameResult(estimate, status), want, drop, keyframe=want)
+
+    @property
+    def holding(self) -> bool:
+        """The last pose came from rays and the motion model (too few map points in view)."""
+        return self._holding_since is not None
+
+    def _hold(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray, prediction: Transform
+              ) -> tuple[Transform, np.ndarray] | None:
+        """Too few map points for PnP: the orientation from every track's ray (pose_fit),
+        the position from the map points still in view and the motion model, whose
+        standard deviation grows with the time held. None when that is not enough."""
+        o = self.options
+        if self._holding_since is None:
+            self._holding_since = self._last_stamp
+        held_s = (stamp_ns - self._holding_since) / 1e9
+        sigma_m = o.hold_sigma_m + o.hold_sigma_m_per_s * held_s
+        if held_s > o.max_hold_s:
+            return None
+        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
+        born = np.array([not h and int(t) in self._births for t, h in zip(tracks.ids, has, strict=True)], bool)
+        if born.sum() < o.min_hold_rays:
+            return None
+        points = np.array([self.map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)
+        depths = prediction.inverse().apply(points)[:, 2] if has.any() else np.zeros(0)
+        depths = depths[depths > 0]
+        depth = float(np.median(depths)) if len(depths) else o.hold_default_depth_m
+        centres = np.array([self._births[int(t)][0] for t in tracks.ids[born]])
+        directions = np.array([self._births[int(t)][1] for t in tracks.ids[born]])
+        rays = Rays(centres, directions, xn[born], 1.0 / depth)
+        # no measured translation: the motion model's dies away (it moved the prediction)
+        held_at = self._last.translation + o.hold_velocity_decay * (prediction.translation - self._last.translation)
+        fit = fit_pose(prediction, points, xn[has], rays, fx=self.fx, sigma_px=o.track_sigma_px,
+                       prior_position=(held_at, sigma_m))
+        if fit is None or fit.ray_inliers.sum() < max(o.min_hold_rays, o.min_hold_ray_fraction * born.sum()):
+            return None
+        rotation_sigma = np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[3:, 3:])))
+        if np.degrees(rotation_sigma) > o.max_hold_rotation_sigma_deg:
+            return None
+        return fit.T_world_camera, fit.covariance
+
+    def _rebase_rays(self, pose: Transform | None, ids: np.ndarray, xn: np.ndarray) -> None:
+        """Keep the rays of the live tracks. On a frame with a measured pose (``pose``) every
+        ray starts again there: a ray is only as good as the pose it starts from, and the
+        newest measured one is the best (a correction of the map moves the old ones)."""
+        if pose is None:
+            self._births = {int(t): self._births[int(t)] for t in ids if int(t) in self._births}
+            return
+        rays = np.column_stack([xn, np.ones(len(xn))]) @ pose.rotation.T
+        rays /= np.linalg.norm(rays, axis=1)[:, None]
+        centre = pose.translation
+        self._births = {int(t): (centre, ray) for t, ray in zip(ids, rays, strict=True)}
+
+    def _with_drift(self, pose: Transform, covariance: np.ndarray | None) -> np.ndarray | None:
+        """The pose's covariance from this frame's measurements plus the map's drift since
+        the target was last trusted: a standard deviation that grows with the path and
+        the rotation since (``drift_per_m``, ``drift_rad_per_rad``)."""
+        if covariance is None:
+            return None
+        o = self.options
+        if self._last is not None:
+            self._path_m += float(np.linalg.norm(pose.translation - self._last.translation))
+            self._turned_rad += float(self._last.rotation_angle_to(pose))
+        position_sigma = o.drift_floor_m + o.drift_per_m * self._path_m + o.drift_m_per_rad * self._turned_rad
+        rotation_sigma = o.drift_rad_per_m * self._path_m + o.drift_rad_per_rad * self._turned_rad
+        total = np.array(covariance, dtype=np.float64, copy=True)
+        total[:3, :3] += np.eye(3) * position_sigma**2
+        total[3:, 3:] += np.eye(3) * rotation_sigma**2
+        return total
 
     def add_tracks(self, tracks: Tracks) -> None:
         """Fresh corners detected in the frame just stepped (after ``want_features``)."""
         if len(tracks.ids) == 0:
             return
         xn = undistort(tracks.pixels, self.calibration)
+        pose = self._frame_pose if self._frame_pose is not None else (
+            self._frame_target.T_world_camera if self._frame_target is not None else None)
+        if pose is not None:
+            kept = self._births
+            self._rebase_rays(pose, tracks.ids, xn)
+            self._births = {**kept, **self._births}
         all_ids = np.concatenate([self._frame_tracks.ids, tracks.ids])
         all_xn = np.concatenate([self._frame_xn, xn])
         self._frame_tracks = Tracks(all_ids, np.concatenate([self._frame_tracks.pixels, tracks.pixels]))
@@ -147,10 +241,18 @@ class Tracker:
             if self.initialiser.try_reference(frame).status is InitStatus.REFERENCE_SET:
                 self._reference_target = self._frame_target
 
-    def relocalised(self, stamp_ns: int, pose: Transform, tracks: Tracks) -> None:
+    def relocalised(self, stamp_ns: int, pose: Transform, tracks: Tracks) -> np.ndarray | None:
         """The caller found ``pose`` by matching this frame to the keyframes, and follows
         the matched map points again as ``tracks``. The frame becomes a keyframe, so the
-        fresh corners that ``add_tracks`` brings next can be triangulated against it."""
+        fresh corners that ``add_tracks`` brings next can be triangulated against it.
+        Returns the pose's covariance (the matches' reprojection errors and the drift)."""
+        xn = undistort(tracks.pixels, self.calibration)
+        points = np.array([self.map.points[int(t)] for t in tracks.ids if int(t) in self.map.points]).reshape(-1, 3)
+        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
+        fit = fit_pose(pose, points, xn[has], None, fx=self.fx, sigma_px=self.options.reloc_reproj_px / 2,
+                       iterations=0) if len(points) >= 6 else None
+        covariance = self._with_drift(pose, None if fit is None else fit.covariance)
+        self._holding_since = None
         self.lost = False
         self._last, self._last_stamp, self._velocity = pose, stamp_ns, None
         self._frame_pose, self._frame_stamp = pose, stamp_ns
@@ -158,6 +260,7 @@ class Tracker:
         self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
         self._frames_since_keyframe = 0
         self._kf_points_at_insert = len(tracks.ids)
+        return covariance
 
     @property
     def last_pose(self) -> Transform | None:
@@ -273,13 +376,14 @@ class Tracker:
                 or np.degrees(a.rotation_angle_to(b)) > self.options.relocalised_jump_deg)
 
     def _pnp(self, tracks: Tracks, xn: np.ndarray, prediction: Transform | None
-             ) -> tuple[Transform | None, int, np.ndarray, float]:
-        """Pose from the tracks with map points: (pose or None, inliers, outlier ids, RMS px)."""
+             ) -> tuple[Transform | None, int, np.ndarray, float, np.ndarray | None]:
+        """Pose from the tracks with map points: (pose or None, inliers, outlier ids, RMS px,
+        6x6 covariance from the inliers' reprojection errors)."""
         o = self.options
         has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
         ids = tracks.ids[has]
         if len(ids) < o.min_pnp_inliers:
-            return None, len(ids), np.zeros(0, np.int64), 0.0
+            return None, len(ids), np.zeros(0, np.int64), 0.0, None
         obj = np.array([self.map.points[int(t)] for t in ids])
         img = xn[has]
         eye = np.eye(3)
@@ -288,7 +392,7 @@ class Tracker:
             reprojectionError=o.pnp_reproj_px / self.fx, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP,
         )
         if not ok or inl is None or len(inl) < o.min_pnp_inliers:
-            return None, 0 if inl is None else len(inl), np.zeros(0, np.int64), 0.0
+            return None, 0 if inl is None else len(inl), np.zeros(0, np.int64), 0.0, None
         mask = np.zeros(len(ids), bool)
         mask[inl.ravel()] = True
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
@@ -302,14 +406,17 @@ class Tracker:
             spread = 3.0 * 1.4826 * float(np.median(err[mask])) if mask.any() else o.pnp_reproj_px
             mask = (z > 0) & (err <= min(o.pnp_reproj_px, max(o.pnp_min_reproj_px, spread)))
             if mask.sum() < o.min_pnp_inliers:
-                return None, int(mask.sum()), ids[~mask], 0.0
+                return None, int(mask.sum()), ids[~mask], 0.0, None
         pose = T_c_w.inverse()
         drop = ids[~mask]
         if not np.all(np.isfinite(pose.matrix())):
-            return None, 0, drop, 0.0
+            return None, 0, drop, 0.0, None
         if prediction is not None and np.linalg.norm(pose.translation - prediction.translation) > o.max_motion_m:
-            return None, int(mask.sum()), drop, 0.0
-        return pose, int(mask.sum()), drop, float(np.sqrt(np.mean(err[mask] ** 2)))
+            return None, int(mask.sum()), drop, 0.0, None
+        rms = float(np.sqrt(np.mean(err[mask] ** 2)))
+        fit = fit_pose(pose, obj[mask], img[mask], None, fx=self.fx, sigma_px=max(rms, o.track_sigma_px),
+                       iterations=0)
+        return pose, int(mask.sum()), drop, rms, None if fit is None else fit.covariance
 
     def _fuse(self, trusted: TargetObservation, tracks: Tracks, xn: np.ndarray, start: Transform) -> Transform:
         """One pose from the target's corners (fixed world points) and the map points
@@ -345,7 +452,10 @@ class Tracker:
             needed = (baseline > ratio
                       or inliers < o.keyframe_tracked_ratio * self._kf_points_at_insert
                       or inliers < o.keyframe_min_points)
-            if not needed or self._frames_since_keyframe < 2:
+            # running short of map points (a turn carries them out of view): a keyframe every
+            # frame, so each new track is triangulated as soon as its parallax allows
+            starving = inliers < o.keyframe_starving_points
+            if not needed or (self._frames_since_keyframe < 2 and not starving):
                 return False
         anchor = trusted if self._anchors(trusted) else None
         target_world = anchor.corners_world if anchor is not None else None

@@ -1,0 +1,191 @@
+"""One frame's camera pose from map points *and* tracks whose depth is not known yet.
+
+Map points (triangulated, metric) constrain all six degrees of freedom. A track without a
+point is a ray: from the camera centre where the track was born, along the direction it
+was seen in. Its point lies somewhere on that ray, so in the current image it lies on the
+ray's projection (the epipolar line): across the line it constrains the pose exactly, and
+along the line only as far as a loose prior on its inverse depth says (mean ``rho0``,
+standard deviation ``rho0``: anywhere from half the scene's median depth to infinity).
+With no translation since its birth the ray projects to a point and the track is a full
+bearing: that keeps the orientation in a pure rotation, where nothing can be triangulated.
+The position is then unobservable from the tracks, and ``prior_position`` (the motion
+model's) holds it, with the standard deviation the caller gives.
+
+Residuals are whitened (pixel noise ``sigma_px``, plus the along-ray spread for rays), so
+one Gauss-Newton solve on the 6-DoF pose weighs both kinds, with Huber weights and a
+chi-square cut. The covariance is the inverse of the whitened normal matrix: what these
+measurements say given the map, nothing about the map's own error (the tracker adds that).
+
+SYNOPSIS
+
+    >>> import numpy as np
+    >>> from positioning.geometry import Transform
+    >>> rng = np.random.default_rng(0)
+    >>> points = rng.uniform([-2, -2, 3], [2, 2, 6], (40, 3))          # world = camera frame
+    >>> truth = Transform.from_rvec_tvec(np.array([0.0, 0.05, 0.0]), np.array([0.02, 0, 0]))
+    >>> xn = project(truth.inverse(), points)
+    >>> fit = fit_pose(Transform.identity(), points, xn, None, fx=1000.0, sigma_px=0.2)
+    >>> bool(np.allclose(fit.T_world_camera.matrix(), truth.matrix(), atol=1e-6)), fit.covariance.shape
+    (True, (6, 6))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from positioning.geometry import Transform
+
+HUBER = 2.0  # whitened units: residuals beyond 2 sigma count linearly
+CHI2_CUT = 3.03  # whitened norm of a 2-D residual: chi-square 99 % for 2 dof
+
+
+@dataclass(frozen=True)
+class Rays:
+    """Tracks without a point: where each was born and how it is seen now."""
+
+    centres: np.ndarray  # (K, 3) world camera centre at the track's birth
+    directions: np.ndarray  # (K, 3) world unit direction of the track's birth ray
+    xn: np.ndarray  # (K, 2) normalised coordinates in the current frame
+    rho0: float  # prior inverse depth (1 / the scene's median depth), 1/m
+
+
+@dataclass(frozen=True)
+class PoseFit:
+    T_world_camera: Transform
+    covariance: np.ndarray  # (6, 6) x y z, rotation about world X Y Z (ROS order)
+    point_inliers: np.ndarray  # (M,) bool
+    ray_inliers: np.ndarray  # (K,) bool
+    rms_px: float  # RMS reprojection error of the map-point inliers, pixels
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices of (N, 3) vectors."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def project(T_camera_world: Transform, points_world: np.ndarray) -> np.ndarray:
+    """Normalised projections (N, 2) of world points."""
+    p = T_camera_world.apply(points_world)
+    return p[:, :2] / p[:, 2:]
+
+
+def _blocks(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray, xn: np.ndarray, fx: float):
+    """Pixel residuals (N, 2), their Jacobians (N, 2, 6) in (d_omega, d_t) of
+    ``R <- exp(d_omega) R, t <- t + d_t`` (camera from world), the projection Jacobians
+    (N, 2, 3) and depths (N,)."""
+    rotated = points @ rotation.T
+    camera = rotated + translation
+    z = camera[:, 2]
+    safe = np.where(z > 1e-6, z, 1e-6)
+    proj = np.zeros((len(points), 2, 3))
+    proj[:, 0, 0] = proj[:, 1, 1] = 1.0 / safe
+    proj[:, 0, 2] = -camera[:, 0] / safe**2
+    proj[:, 1, 2] = -camera[:, 1] / safe**2
+    proj *= fx
+    residual = (camera[:, :2] / safe[:, None] - xn) * fx
+    jac = np.concatenate([proj @ -_skew(rotated), proj], axis=2)
+    return residual, jac, proj, z
+
+
+def _ray_blocks(R: np.ndarray, t: np.ndarray, rays: Rays, fx: float, sigma_px: float):
+    """Whitened residuals (K, 2), Jacobians (K, 2, 6) and depths (K,) of the rays.
+
+    A ray's point ``C + d / rho`` projects to ``pi(R d + rho w)``, ``w = R (C - c)`` the
+    baseline since its birth in the current camera (``c`` the camera centre). The
+    predicted position is at the prior ``rho0``; its spread along the ray's image, one
+    sigma of ``rho`` (= ``rho0``), joins the pixel noise there. The rays constrain the
+    orientation only (their translation columns are zero): with no depth, what they say
+    about the position is what the prior depth assumes, and that is no measurement."""
+    d_cam = rays.directions @ R.T
+    w = (rays.centres @ R.T) + t  # R C + t = R (C - c)
+    at_prior = d_cam + rays.rho0 * w
+    z = at_prior[:, 2]
+    safe = np.where(z > 1e-6, z, 1e-6)
+    predicted = at_prior[:, :2] / safe[:, None]
+    proj = np.zeros((len(z), 2, 3))
+    proj[:, 0, 0] = proj[:, 1, 1] = fx / safe
+    proj[:, 0, 2] = -fx * at_prior[:, 0] / safe**2
+    proj[:, 1, 2] = -fx * at_prior[:, 1] / safe**2
+    residual = (predicted - rays.xn) * fx
+    v = np.einsum("kij,kj->ki", proj, w) * rays.rho0  # px moved by one sigma of rho
+    norm2 = np.sum(v * v, axis=1)
+    unit = v / np.sqrt(np.maximum(norm2, 1e-18))[:, None]
+    along_gain = 1.0 / np.sqrt(sigma_px**2 + norm2) - 1.0 / sigma_px
+    whiten = np.eye(2)[None] / sigma_px + along_gain[:, None, None] * unit[:, :, None] * unit[:, None, :]
+    jac = np.zeros((len(z), 2, 6))
+    jac[:, :, :3] = proj @ -_skew(d_cam)
+    return np.einsum("kij,kj->ki", whiten, residual), whiten @ jac, z
+
+
+def fit_pose(start: Transform, points_world: np.ndarray, points_xn: np.ndarray, rays: Rays | None, *,
+             fx: float, sigma_px: float, prior_position: tuple[np.ndarray, float] | None = None,
+             iterations: int = 8) -> PoseFit | None:
+    """The pose (T_world_camera) that best explains the map points' and rays'
+    observations, from ``start``; None when the normal matrix is singular (nothing holds
+    the pose: no points, rays all in one direction and no prior)."""
+    R = start.rotation.T.copy()  # camera from world
+    t = -R @ start.translation
+    points_world = np.asarray(points_world, np.float64).reshape(-1, 3)
+    points_xn = np.asarray(points_xn, np.float64).reshape(-1, 2)
+    m = len(points_world)
+    k = 0 if rays is None else len(rays.xn)
+    p_in = np.ones(m, bool)
+    r_in = np.ones(k, bool)
+    normal = None
+    for it in range(iterations + 2):
+        rows, jacs = [], []
+        # map points: isotropic pixel noise
+        res_p, jac_p, _, z_p = _blocks(R, t, points_world, points_xn, fx)
+        res_p, jac_p = res_p / sigma_px, jac_p / sigma_px
+        if k:
+            res_r, jac_r, z_r = _ray_blocks(R, t, rays, fx, sigma_px)
+        else:
+            res_r, jac_r, z_r = np.zeros((0, 2)), np.zeros((0, 2, 6)), np.zeros(0)
+        # which observations count: the chi-square cut, once the solve has settled
+        huber = max(HUBER, 64.0 / 4**it)  # graduated: far from the answer, all pull
+        if it >= iterations // 2:
+            p_in = (np.linalg.norm(res_p, axis=1) <= CHI2_CUT) & (z_p > 0)
+            r_in = (np.linalg.norm(res_r, axis=1) <= CHI2_CUT) & (z_r > 0)
+        for res, jac, keep in ((res_p, jac_p, p_in), (res_r, jac_r, r_in)):
+            if not keep.any():
+                continue
+            norm = np.linalg.norm(res[keep], axis=1)
+            weight = np.sqrt(np.where(norm <= huber, 1.0, huber / np.maximum(norm, 1e-12)))
+            rows.append((res[keep] * weight[:, None]).reshape(-1))
+            jacs.append((jac[keep] * weight[:, None, None]).reshape(-1, 6))
+        if prior_position is not None:
+            mean, sigma_m = prior_position
+            c = -R.T @ t
+            rows.append((c - mean) / sigma_m)
+            jacs.append(np.hstack([-R.T @ _skew(t[None])[0], -R.T]) / sigma_m)
+        if not rows:
+            return None
+        jac = np.concatenate(jacs)
+        res = np.concatenate(rows)
+        normal = jac.T @ jac
+        if it == iterations + 1 or np.linalg.cond(normal) > 1e12:
+            break
+        step = np.linalg.solve(normal, -jac.T @ res)
+        R = cv2.Rodrigues(step[:3])[0] @ R
+        t = t + step[3:]
+    if normal is None or not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
+        return None
+    cov_solver = np.linalg.inv(normal)
+    # (d_omega, d_t) -> (camera centre, rotation about world axes)
+    g = np.zeros((6, 6))
+    g[:3, :3] = -R.T @ _skew(t[None])[0]
+    g[:3, 3:] = -R.T
+    g[3:, :3] = -R.T
+    cov = g @ cov_solver @ g.T
+    pose = Transform(R.T, -R.T @ t)
+    res_p, _, _, _ = _blocks(R, t, points_world, points_xn, fx)
+    rms = float(np.sqrt(np.mean(np.sum(res_p[p_in] ** 2, axis=1)))) if p_in.any() else 0.0
+    if not (np.all(np.isfinite(pose.matrix())) and np.all(np.isfinite(cov))):
+        return None
+    return PoseFit(pose, (cov + cov.T) / 2.0, p_in, r_in, rms)
