@@ -6,7 +6,8 @@ import sys
 import time
 
 # fakes.trajectories.TRAJECTORIES, spelled out so that --help needs no numpy import
-TRAJECTORY_NAMES = ("static", "orbit", "paper", "room_walk", "spin")
+TRAJECTORY_NAMES = ("static", "orbit", "paper", "room_walk", "spin", "turn_after_init", "spin_in_place",
+                    "spin_in_place_fast", "spin_on_axis", "agile", "passers_by", "blank_wall", "long_lap")
 
 
 def register(subparsers) -> None:
@@ -18,10 +19,12 @@ def register(subparsers) -> None:
             "sequence directory: mav0/cam0 (EuRoC layout), groundtruth.tum, camera.yaml, target.yaml."
         ),
     )
-    parser.add_argument("--trajectory", required=True, choices=TRAJECTORY_NAMES, help="camera path")
+    parser.add_argument("--trajectory", required=True, choices=TRAJECTORY_NAMES,
+                        help="camera path; the robot-motion scenarios (turn_after_init ... long_lap) bring "
+                             "their own passers-by, exposure steps and exposure-long motion blur")
     parser.add_argument("--out", required=True, help="sequence directory to create (must not exist or be empty)")
-    parser.add_argument("--seconds", type=float, help="length (default per trajectory: 10, 40, 30, 40)")
-    parser.add_argument("--fps", type=float, help="frame rate (default 10)")
+    parser.add_argument("--seconds", type=float, help="length (default per trajectory, e.g. paper 30, long_lap 110)")
+    parser.add_argument("--fps", type=float, help="frame rate (default 10; agile and spin_in_place_fast 30)")
     parser.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default 0)")
     parser.add_argument("--noise", type=float, default=2.0, help="read noise, DN (default 2)")
     parser.add_argument("--blur", type=float, default=0.0, help="defocus blur sigma, px (default 0)")

@@ -105,6 +105,10 @@ class Tracker:
         held = None
         if tracked is None and trusted is None and prediction is not None:
             held = self._hold(stamp_ns, tracks, xn, prediction)
+        if trusted is not None and tracked is not None and not self.lost and not self._anchors(trusted):
+            # the target at a grazing angle or the image edge is less sure than the map:
+            # the map's pose goes out, and the target neither corrects nor anchors it
+            trusted = None
         if trusted is not None:
             pose = trusted.T_world_camera
             state = PoseState.TARGET
