@@ -20,8 +20,9 @@ initialisation needs. The camera is 1 m above the floor with no roll, as on a ro
 ``passers_by``         a slow drive past the cube and away while person-sized textured
                        panels walk across the view 0.5-2 m from the camera, one over the
                        cube during initialisation; 10 fps
-``blank_wall``         a drive up to a freshly painted wall, 2.5 s facing it from 0.9 m
-                       (a few scuffs are all its texture), and back; 10 fps
+``blank_wall``         a drive along the room, a turn to face a freshly painted wall from
+                       1.2 m (~3 s of view with a few scuffs for all texture), and back;
+                       10 fps
 ``long_lap``           110 s: a lap of the room with the cube out of view >= 80 s, radius,
                        heading and tilt wandering, back to the cube at the end; 10 fps
 =====================  =================================================================
@@ -55,7 +56,7 @@ TIMING = {
     "spin_on_axis": (22.0, 10.0, 14.0),
     "agile": (24.0, 30.0, 12.0),
     "passers_by": (30.0, 10.0, 24.0),
-    "blank_wall": (24.0, 10.0, 20.0),
+    "blank_wall": (26.0, 10.0, 22.0),
     "long_lap": (110.0, 10.0, 100.0),
 }
 
@@ -64,6 +65,17 @@ def _spline(rows: list[list[float]], times: np.ndarray) -> np.ndarray:
     keyframes = np.array(rows, dtype=np.float64)
     spline = CubicSpline(keyframes[:, 0], keyframes[:, 1:], axis=0, bc_type="clamped")
     return spline(np.clip(times, keyframes[0, 0], keyframes[-1, 0]))
+
+
+def _stop_and_go(rows: list[list[float]], times: np.ndarray) -> np.ndarray:
+    """Rows (t, values...) joined by smoothstep segments: at rest at every row (a robot
+    that stops, turns, stops), no overshoot between rows."""
+    keyframes = np.array(rows, dtype=np.float64)
+    t = np.clip(times, keyframes[0, 0], keyframes[-1, 0])
+    k = np.clip(np.searchsorted(keyframes[:, 0], t, side="right") - 1, 0, len(keyframes) - 2)
+    a, b = keyframes[k], keyframes[k + 1]
+    s = _smoothstep((t - a[:, 0]) / (b[:, 0] - a[:, 0]))[:, None]
+    return a[:, 1:] + s * (b[:, 1:] - a[:, 1:])
 
 
 def _camera(x: float, y: float, yaw: float, pitch: float, z: float = HEIGHT) -> Transform:
@@ -186,19 +198,23 @@ BLANK_WALL_X = 5.0 - 0.05  # the painted panel stands 5 cm in front of the +x wa
 
 
 def _blank_wall(times: np.ndarray, seconds: float) -> list[Transform]:
-    """Drive from the cube to 0.9 m in front of the +x wall, face it for 2.5 s, back."""
+    """From the cube, drive along the room towards the +x wall looking along it (its
+    textured neighbours in view), stop, turn 90 deg right (2.5 s) to face the painted panel
+    from 1.2 m, hold 1 s, turn back left to the view it came with, and on round to drive
+    back to the cube. The view is all panel for ~3 s (it is 2.4 m wide)."""
     yaw0, pitch0 = _look_at_cube(*START)
-    near = BLANK_WALL_X - 0.9
-    arrive = seconds / 2 - 1.25
-    rows = [[0.0, *START, yaw0, pitch0], [3.0, 1.7, -1.35, yaw0 - 8 * DEG, pitch0],
-            [arrive - 2.0, near - 0.6, -0.3, 10 * DEG, 0.0],
-            [arrive, near, 0.0, 0.0, 0.0], [arrive + 2.5, near, 0.0, 0.0, 0.0],
-            [arrive + 4.5, near - 0.7, 0.3, 30 * DEG, 0.0]]
-    xe, ye = 1.8, 1.0
+    near = BLANK_WALL_X - 1.2
+    middle = seconds / 2
+    along = 90 * DEG  # looking along the wall (+y)
+    xe, ye = 1.8, -1.8
     yaw_e, pitch_e = _look_at_cube(xe, ye)
-    rows += [[seconds - 2.0, xe, ye, yaw_e + 2 * np.pi * round((30 * DEG - yaw_e) / (2 * np.pi)), pitch_e],
-             [seconds, xe, ye, yaw_e + 2 * np.pi * round((30 * DEG - yaw_e) / (2 * np.pi)), pitch_e]]
-    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
+    rows = [[0.0, *START, yaw0, pitch0], [3.0, 1.7, -1.35, yaw0 - 8 * DEG, pitch0],
+            [middle - 7.0, 2.6, -1.3, along + 15 * DEG, 5 * DEG],
+            [middle - 3.75, near, -0.3, along, 0.0],
+            [middle - 1.25, near, -0.3, 0.0, 0.0], [middle - 0.25, near, -0.3, 0.0, 0.0],
+            [middle + 2.25, near, -0.3, along, 0.0],
+            [seconds - 2.5, xe, ye, yaw_e, pitch_e], [seconds, xe, ye, yaw_e, pitch_e]]
+    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _stop_and_go(rows, times)]
 
 
 def _long_lap(times: np.ndarray, seconds: float) -> list[Transform]:
@@ -307,14 +323,14 @@ def _walkers_across(poses: list[Transform], times: np.ndarray, crossings: list[t
 
 @functools.lru_cache(maxsize=2)
 def painted_wall() -> tuple[Quad, ...]:
-    """A freshly painted panel, 4 m x 2.8 m, before the +x wall: flat paint with faint
+    """A freshly painted panel, 2.4 m x 2.8 m, before the +x wall: flat paint with faint
     roller marks and a handful of scuffs (a few corners, far fewer than the room's)."""
     texel = 0.004
     rng = np.random.default_rng(42)
-    h, w = int(2.8 / texel), int(4.0 / texel)
+    h, w = int(2.8 / texel), int(2.4 / texel)
     texture = procedural_texture(h, w, rng, mean=0.72, contrast=0.03, shapes_per_mpx=40.0)
-    origin = np.array([BLANK_WALL_X, 2.0, 2.85])  # top-left seen from inside (looking +x)
-    return (Quad(origin, np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0]), 4.0, 2.8,
+    origin = np.array([BLANK_WALL_X, 0.9, 2.85])  # top-left seen from inside (looking +x)
+    return (Quad(origin, np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0]), 2.4, 2.8,
                  TextureShader(texture, texel)),)
 
 

@@ -205,6 +205,7 @@ class TrackingProcessor:
         if found is None:
             return lost
         self.front_end.adopt(found.point_ids, found.pixels)
-        covariance = self.tracker.relocalised(stamp_ns, found.T_world_camera, Tracks(found.point_ids, found.pixels))
+        covariance = self.tracker.relocalised(stamp_ns, found.T_world_camera, Tracks(found.point_ids, found.pixels),
+                                              found.covariance)
         estimate = PoseEstimate(found.T_world_camera, PoseState.RELOCALISED, 0, (), 0.0, covariance)
         return FrameResult(estimate, "relocalised", f"{len(found.point_ids)} map points found again")

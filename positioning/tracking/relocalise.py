@@ -21,6 +21,7 @@ from positioning.geometry import Transform
 from positioning.tracking.features import find_corners
 from positioning.tracking.map import Keyframe, Map
 from positioning.tracking.options import TrackerOptions
+from positioning.tracking.pose_fit import fit_pose
 from positioning.tracking.twoview import project_normalised, undistort
 
 ORB_PATCH_PX = 31  # ORB's default patch; keypoints closer than half of it to the edge are dropped
@@ -32,6 +33,7 @@ class Relocalisation:
     point_ids: np.ndarray  # (K,) map points found again (inliers)
     pixels: np.ndarray  # (K, 2) where they are in this image
     matches: int
+    covariance: np.ndarray  # (6, 6) ROS order, from the inliers' reprojection errors
 
 
 class Relocaliser:
@@ -112,4 +114,12 @@ class Relocaliser:
         pose = T_camera_world.inverse()
         if good.sum() < o.reloc_min_inliers or not np.all(np.isfinite(pose.matrix())):
             return None
-        return Relocalisation(pose, ids[good], pixels[good], len(best))
+        # A wrong relocalisation is worse than none: matches of far points in a narrow view
+        # can agree on a pose that is centimetres off (measured: 60 mm on blank_wall, its
+        # map then built on it). Refused unless the matches pin the position down.
+        err_px = np.linalg.norm(proj[good] - xn[good], axis=1) * self.calibration.fx
+        fit = fit_pose(pose, obj[good], xn[good], None, fx=self.calibration.fx,
+                       sigma_px=max(float(np.sqrt(np.mean(err_px**2))), o.track_sigma_px), iterations=0)
+        if fit is None or np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[:3, :3]))) > o.reloc_max_position_sigma_m:
+            return None
+        return Relocalisation(pose, ids[good], pixels[good], len(best), fit.covariance)

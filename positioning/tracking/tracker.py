@@ -245,17 +245,13 @@ class Tracker:
             if self.initialiser.try_reference(frame).status is InitStatus.REFERENCE_SET:
                 self._reference_target = self._frame_target
 
-    def relocalised(self, stamp_ns: int, pose: Transform, tracks: Tracks) -> np.ndarray | None:
+    def relocalised(self, stamp_ns: int, pose: Transform, tracks: Tracks, covariance: np.ndarray | None = None
+                    ) -> np.ndarray | None:
         """The caller found ``pose`` by matching this frame to the keyframes, and follows
         the matched map points again as ``tracks``. The frame becomes a keyframe, so the
         fresh corners that ``add_tracks`` brings next can be triangulated against it.
-        Returns the pose's covariance (the matches' reprojection errors and the drift)."""
-        xn = undistort(tracks.pixels, self.calibration)
-        points = np.array([self.map.points[int(t)] for t in tracks.ids if int(t) in self.map.points]).reshape(-1, 3)
-        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
-        fit = fit_pose(pose, points, xn[has], None, fx=self.fx, sigma_px=self.options.reloc_reproj_px / 2,
-                       iterations=0) if len(points) >= 6 else None
-        covariance = self._with_drift(pose, None if fit is None else fit.covariance)
+        Returns the pose's covariance: the match's (``covariance``) plus the drift."""
+        covariance = self._with_drift(pose, covariance)
         self._holding_since = None
         self.lost = False
         self._last, self._last_stamp, self._velocity = pose, stamp_ns, None
