@@ -29,6 +29,8 @@ def register(subparsers) -> None:
     parser.add_argument("--calib", required=True, metavar="FILE", help="camera_info YAML of the camera")
     parser.add_argument("--sequence", required=True, metavar="DIR", help="sequence directory (mav0/cam0/...)")
     parser.add_argument("--out", required=True, metavar="OUT.tum", help="trajectory to write (TUM format)")
+    parser.add_argument("--poses", metavar="OUT.jsonl",
+                        help="also write the cubeloc.pose/1 payload of every frame with a pose, one JSON per line")
     parser.add_argument("--background-ba", action="store_true",
                         help="run bundle adjustment in a worker thread, as the daemon does")
     parser.set_defaults(func=run)
@@ -37,20 +39,28 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dataclasses import replace
 
+    import structlog
+
     from calib.camera_info import read_camera_info
+    from cubeloc.atomic import atomic_write_text
     from cubeloc.errors import InputFileError
+    from daemon.logs import configure_logging
+    from daemon.messages import UnpublishablePose, encode, pose_payload
     from drivers.sequence import read_mono_png, read_sequence_index
     from positioning.evaluation import absolute_trajectory_error
     from positioning.target import load_target
     from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
     from positioning.trajectory_io import StampedPose, read_tum, write_tum
 
+    configure_logging("warning", stream=sys.stderr)  # stdout is for the summary
+    log = structlog.get_logger()
     target = load_target(args.target)
     calibration = read_camera_info(args.calib)
     entries = read_sequence_index(args.sequence)
     out = Path(args.out)
-    if not out.parent.is_dir():
-        raise InputFileError(f"{out}: the directory {out.parent} does not exist")
+    for path in (out, Path(args.poses) if args.poses else None):
+        if path is not None and not path.parent.is_dir():
+            raise InputFileError(f"{path}: the directory {path.parent} does not exist")
     groundtruth_path = Path(args.sequence) / "groundtruth.tum"
     groundtruth = read_tum(groundtruth_path) if groundtruth_path.is_file() else None
 
@@ -59,6 +69,7 @@ def run(args) -> int:
         defaults.tracker, bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
     processor = TrackingProcessor(target, calibration, options)
     poses: list[StampedPose] = []
+    payloads: list[str] = []
     states: Counter[str] = Counter()
     started = time.perf_counter()
     try:
@@ -73,15 +84,22 @@ def run(args) -> int:
             if result.estimate is not None:
                 poses.append(StampedPose(entry.stamp_ns, result.estimate.T_world_camera))
                 states[result.estimate.state.value] += 1
+                if args.poses:
+                    try:
+                        payloads.append(encode(pose_payload(seq, entry.stamp_ns, result.estimate)).decode())
+                    except UnpublishablePose as exc:  # as the daemon: such a frame publishes nothing
+                        log.warning("track.unpublishable", seq=seq, error=str(exc))
             else:
                 states[result.status] += 1
     finally:
         processor.close()
     elapsed = time.perf_counter() - started
     write_tum(out, poses)
+    if args.poses:
+        atomic_write_text(Path(args.poses), "".join(line + "\n" for line in payloads))
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
     print(f"{len(entries)} frames in {elapsed:.1f} s ({len(entries) / max(elapsed, 1e-9):.1f} fps): {summary}")
-    print(f"wrote {len(poses)} poses to {out}")
+    print(f"wrote {len(poses)} poses to {out}" + (f" and {args.poses}" if args.poses else ""))
     if groundtruth is not None:
         if not poses:
             print("no pose to compare with the ground truth", file=sys.stderr)
