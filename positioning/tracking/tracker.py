@@ -463,15 +463,17 @@ class Tracker:
         kf = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn, target_world, target_xn)
         self._frame_keyframe = kf
         self._frames_since_keyframe = 0
-        self._triangulate(kf)
+        self._triangulate(kf, o.triangulation_starving_parallax_deg if inliers < o.keyframe_starving_points
+                          else o.triangulation_min_parallax_deg)
         self._kf_points_at_insert = sum(1 for t in kf.track_ids if int(t) in self.map.points)
         self.map.cull(o.max_keyframes, {int(t) for t in tracks.ids})
         self._schedule_bundle()
         return True
 
-    def _triangulate(self, kf) -> None:
+    def _triangulate(self, kf, min_parallax_deg: float) -> None:
         """New points for the keyframe's tracks that have none, each against the first
-        keyframe that saw it (the longest baseline the track offers)."""
+        keyframe that saw it (the longest baseline the track offers), where the two rays
+        meet at ``min_parallax_deg`` or more."""
         o = self.options
         pending: dict[int, list[int]] = {}
         for i, t in enumerate(kf.track_ids):
@@ -485,7 +487,7 @@ class Tracker:
             ids = kf.track_ids[rows]
             xa = np.array([first.observation(int(t)) for t in ids])
             result = triangulate(first.T_world_camera, kf.T_world_camera, xa, kf.xn[rows], self.fx,
-                                 o.triangulation_max_reproj_px, o.triangulation_min_parallax_deg)
+                                 o.triangulation_max_reproj_px, min_parallax_deg)
             for track_id, point in zip(ids[result.good], result.points_world[result.good], strict=True):
                 self.map.add_point(int(track_id), point, kf.kf_id if kf.anchored else first_id)
 
