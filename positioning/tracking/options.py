@@ -126,12 +126,15 @@ class TrackerOptions:
     # too few map points in view (a turn on the spot): held on rays (pose_fit.py)
     min_hold_rays: int = 30  # tracks without a point, agreeing with one orientation
     min_hold_ray_fraction: float = 0.6  # ...and that share of them (fewer: parallax or movers)
+    min_hold_points: int = 8  # map points that agree, for them to hold the position too
     hold_sigma_m: float = 0.01  # the held position's standard deviation at once...
     hold_sigma_m_per_s: float = 0.05  # ...growing by this per second held
     max_hold_s: float = 20.0  # longer than this on rays alone: lost
     max_hold_rotation_sigma_deg: float = 0.5
     hold_default_depth_m: float = 3.0  # the rays' prior depth when no map point is in view
-    hold_velocity_decay: float = 0.5  # per held frame, of the motion model's translation
+    # the motion model's translation, unmeasured while held, halves in this time (a robot
+    # that stops to turn on the spot, or drives on past a blank wall)
+    hold_velocity_half_life_s: float = 0.2
     track_sigma_px: float = 0.3  # a track's noise floor for covariances (KLT + alignment)
     # the map's drift since the target was last trusted, added to a tracking pose's
     # covariance (standard deviations)

@@ -183,9 +183,15 @@ class Tracker:
         directions = np.array([self._births[int(t)][1] for t in tracks.ids[born]])
         rays = Rays(centres, directions, xn[born], 1.0 / depth)
         # no measured translation: the motion model's dies away (it moved the prediction)
-        held_at = self._last.translation + o.hold_velocity_decay * (prediction.translation - self._last.translation)
+        decay = 0.5 ** ((stamp_ns - self._last_stamp) / 1e9 / o.hold_velocity_half_life_s)
+        held_at = self._last.translation + decay * (prediction.translation - self._last.translation)
         fit = fit_pose(prediction, points, xn[has], rays, fx=self.fx, sigma_px=o.track_sigma_px,
                        prior_position=(held_at, sigma_m))
+        if fit is not None and 0 < fit.point_inliers.sum() < o.min_hold_points:
+            # a handful of points pull the position wherever their few rays allow (measured:
+            # 2 points moved a held pose 40 mm): the rays and the motion model alone
+            fit = fit_pose(prediction, np.zeros((0, 3)), np.zeros((0, 2)), rays, fx=self.fx,
+                           sigma_px=o.track_sigma_px, prior_position=(held_at, sigma_m))
         if fit is None or fit.ray_inliers.sum() < max(o.min_hold_rays, o.min_hold_ray_fraction * born.sum()):
             return None
         rotation_sigma = np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[3:, 3:])))
@@ -272,9 +278,25 @@ class Tracker:
         empty = np.zeros(0, np.int64)
         if trusted is None:
             status = InitStatus.NO_TARGET_POSE
-            return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
+            prediction = self._predict(stamp_ns)
+            held = self._hold(stamp_ns, tracks, xn, prediction) if prediction is not None else None
+            if held is None:
+                self._holding_since = None
+                return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty,
+                                     status)
+            # the target hidden (a passer-by) before the map exists: held on the rays of
+            # tracks born on target poses, the map still waits for the target
+            pose, covariance = held
+            self._rebase_rays(None, tracks.ids, xn)
+            self._update_motion(pose, stamp_ns)
+            self._frame_pose = pose
+            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, self._with_drift(pose, covariance))
+            return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
+                                 empty, status)
+        self._holding_since = None
         estimate = PoseEstimate(trusted.T_world_camera, PoseState.TARGET, trusted.planes, trusted.tag_ids,
                                 trusted.reproj_rms_px, trusted.covariance)
+        self._rebase_rays(trusted.T_world_camera, tracks.ids, xn)
         self._update_motion(trusted.T_world_camera, stamp_ns)
         if not self._anchors(trusted):
             # published, but too uncertain to fix the map's scale and frame
