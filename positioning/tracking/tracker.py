@@ -174,7 +174,7 @@ class Tracker:
         has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
         born = np.array([not h and int(t) in self._births for t, h in zip(tracks.ids, has, strict=True)], bool)
         if born.sum() < o.min_hold_rays:
-            return None
+            return self._coast(held_s, prediction)
         points = np.array([self.map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)
         depths = prediction.inverse().apply(points)[:, 2] if has.any() else np.zeros(0)
         depths = depths[depths > 0]
@@ -198,6 +198,20 @@ class Tracker:
         if np.degrees(rotation_sigma) > o.max_hold_rotation_sigma_deg:
             return None
         return fit.T_world_camera, fit.covariance
+
+    def _coast(self, held_s: float, prediction: Transform) -> tuple[Transform, np.ndarray] | None:
+        """Nothing to see (a passer-by filling the view): the motion model's pose for at
+        most ``max_coast_s`` since the last measured one, with the covariance of a robot
+        that may have changed its speed by ``coast_accel_m_s2`` and its turn rate by
+        ``coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2)."""
+        o = self.options
+        if held_s > o.max_coast_s:
+            return None
+        t = max(held_s, 1e-3)
+        covariance = np.zeros((6, 6))
+        covariance[:3, :3] = np.eye(3) * (o.hold_sigma_m + 0.5 * o.coast_accel_m_s2 * t * t) ** 2
+        covariance[3:, 3:] = np.eye(3) * (0.5 * o.coast_angular_accel_rad_s2 * t * t) ** 2
+        return prediction, covariance
 
     def _rebase_rays(self, pose: Transform | None, ids: np.ndarray, xn: np.ndarray) -> None:
         """Keep the rays of the live tracks. On a frame with a measured pose (``pose``) every
