@@ -212,3 +212,68 @@ def scale_drift(
         end_error_m=float(end_error),
         translation_drift_percent=float(100.0 * (end_error - start_error) / distance) if distance > 0 else 0.0,
     )
+
+
+# NEES bounds for the position (3 dof): the chi-square 99.7 % bound, and a Mahalanobis
+# distance of 5 (an error 5 standard deviations out along its own worst direction)
+CHI2_3DOF_997 = 14.16
+NEES_5_SIGMA = 25.0
+
+
+@dataclass(frozen=True)
+class RunScore:
+    """How a run over a sequence went, frame by frame, against the ground truth."""
+
+    frames: int
+    with_pose: int
+    coverage: float  # frames with a pose / frames
+    longest_gap_frames: int  # the longest run of frames without a pose
+    rmse_m: float  # absolute position error, no alignment (nan without a pose)
+    max_m: float
+    consistent: float  # share of poses with a covariance whose error is inside its 3-sigma ellipsoid
+    beyond_5_sigma: int  # poses whose error is beyond 5 sigma of their own covariance (NEES > 25)
+    without_covariance: int
+
+
+def score_run(truth: list[StampedPose], poses: list[tuple[StampedPose, np.ndarray | None] | None]) -> RunScore:
+    """Score one estimate per frame (``None`` for a frame without a pose, else the pose
+    and its 6x6 covariance, ROS order, or None) against ``truth`` (one per frame, same
+    order). Consistency is the NEES of the position: e^T S^-1 e with S the covariance's
+    position block, against the chi-square bound for 3 dof (14.16 for 99.7 %) and 25 (a
+    Mahalanobis distance of 5).
+
+    >>> from positioning.geometry import Transform
+    >>> t = [StampedPose(i, Transform.identity()) for i in range(4)]
+    >>> off = Transform(np.eye(3), np.array([0.003, 0.0, 0.0]))
+    >>> s = score_run(t, [None, (StampedPose(1, off), np.eye(6) * 1e-6), (StampedPose(2, off), None), None])
+    >>> s.coverage, s.longest_gap_frames, round(s.rmse_m, 4), s.consistent, s.beyond_5_sigma
+    (0.5, 1, 0.003, 1.0, 0)
+    """
+    if len(truth) != len(poses):
+        raise ValueError(f"{len(truth)} ground-truth poses for {len(poses)} frames")
+    errors, nees, gap, longest, without = [], [], 0, 0, 0
+    for reference, entry in zip(truth, poses, strict=True):
+        if entry is None:
+            gap += 1
+            longest = max(longest, gap)
+            continue
+        gap = 0
+        estimate, covariance = entry
+        error = estimate.T_world_camera.translation - reference.T_world_camera.translation
+        errors.append(float(np.linalg.norm(error)))
+        if covariance is None:
+            without += 1
+        else:
+            nees.append(float(error @ np.linalg.solve(np.asarray(covariance)[:3, :3], error)))
+    errors_a, nees_a = np.array(errors), np.array(nees)
+    return RunScore(
+        frames=len(truth),
+        with_pose=len(errors),
+        coverage=len(errors) / max(len(truth), 1),
+        longest_gap_frames=longest,
+        rmse_m=float(np.sqrt(np.mean(errors_a**2))) if len(errors) else float("nan"),
+        max_m=float(errors_a.max()) if len(errors) else float("nan"),
+        consistent=float(np.mean(nees_a <= CHI2_3DOF_997)) if len(nees) else float("nan"),
+        beyond_5_sigma=int(np.sum(nees_a > NEES_5_SIGMA)),
+        without_covariance=without,
+    )

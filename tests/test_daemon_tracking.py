@@ -8,8 +8,8 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+from helpers import half_resolution
 from test_daemon_loop import free_port, listeners  # noqa: F401 (a fixture)
-from test_tracking_images import half_resolution
 
 from calib.camera_info import write_camera_info
 from daemon.config import Config

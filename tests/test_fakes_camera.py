@@ -13,8 +13,7 @@ from drivers.registry import make_camera
 from drivers.sequence import read_mono_png, read_sequence_index
 from fakes import TRAJECTORIES, SyntheticCamera, default_room, make_trajectory
 from fakes.scenarios import TIMING as SCENARIO_TIMING
-from fakes.trajectories import DEFAULT_FPS_OF
-from fakes.trajectories import EPOCH_NS, TrajectoryError
+from fakes.trajectories import DEFAULT_FPS_OF, EPOCH_NS, TrajectoryError
 from positioning.geometry import look_at
 from positioning.target import load_target, make_cube
 from positioning.trajectory_io import StampedPose, read_tum, write_tum

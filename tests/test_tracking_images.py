@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import half_resolution
 
-from calib.camera_info import CameraCalibration, paper_camera
+from calib.camera_info import CameraCalibration
 from drivers.sequence import read_mono_png, read_sequence_index
 from fakes.optics import project, undistort_pixels
 from fakes.room import default_room
@@ -31,14 +32,6 @@ SYNC = ProcessorOptions()
 # bundle adjustment in the frame loop (deterministic) and lighter than the daemon's
 SYNC = replace(SYNC, tracker=replace(SYNC.tracker, bundle=BundleOptions(background=False, max_iterations=4,
                                                                         robust_rounds=1)))
-
-
-def half_resolution() -> CameraCalibration:
-    full = paper_camera()
-    k = full.camera_matrix.copy()
-    k[:2] /= 2.0
-    k[0, 2], k[1, 2] = (640 - 1) / 2.0, (512 - 1) / 2.0
-    return CameraCalibration(640, 512, k, full.distortion, "plumb_bob", "half")
 
 
 def load(directory: Path) -> tuple[list[np.ndarray], list[StampedPose]]:

@@ -1,0 +1,110 @@
+"""The tracker through the motions a robot really makes (fakes/scenarios.py), at half
+resolution (640x512) and with bundle adjustment in the frame loop, so every run is the
+same. Each test asserts the issue's goals with a margin below what was measured; the
+full-resolution figures, and today's tracker side by side, come from ``python -m bench
+scenarios``.
+
+The previous tracker (commit 9580d93) on these sequences, for the record: turn_after_init
+13 % of frames with a pose, spin_on_axis 40 % (the whole turn lost), passers_by 98 %.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from helpers import half_resolution
+
+from drivers.sequence import read_mono_png, read_sequence_index
+from fakes.sequence import write_synthetic_sequence
+from positioning.estimator import PoseState
+from positioning.evaluation import score_run
+from positioning.target import make_cube
+from positioning.tracking.options import BundleOptions
+from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+from positioning.trajectory_io import StampedPose, read_tum
+
+SYNC = ProcessorOptions()
+SYNC = replace(SYNC, tracker=replace(SYNC.tracker, bundle=BundleOptions(background=False)))
+
+
+def replay(tmp_path_factory, name: str, seconds: float | None = None, seed: int = 11):
+    """Render scenario ``name`` at half resolution and run the tracker over it: (score,
+    results, truth)."""
+    out = tmp_path_factory.mktemp(name) / name
+    write_synthetic_sequence(out, name, seconds=seconds, seed=seed, calibration=half_resolution())
+    truth = read_tum(out / "groundtruth.tum")
+    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC)
+    results = []
+    try:
+        for i, entry in enumerate(read_sequence_index(out)):
+            results.append(processor.process(read_mono_png(entry.path), entry.stamp_ns, i))
+    finally:
+        processor.close()
+    entries = [None if r.estimate is None else (StampedPose(t.stamp_ns, r.estimate.T_world_camera),
+                                                r.estimate.covariance)
+               for r, t in zip(results, truth, strict=True)]
+    return score_run(truth, entries), results, truth
+
+
+def tracking_score(results, truth):
+    """The score of the map's poses alone (the target's own single-frame poses left out)."""
+    entries = [None if r.estimate is None or r.estimate.state is PoseState.TARGET else
+               (StampedPose(t.stamp_ns, r.estimate.T_world_camera), r.estimate.covariance)
+               for r, t in zip(results, truth, strict=True)]
+    return score_run(truth, entries)
+
+
+def test_a_brisk_turn_right_after_initialisation_keeps_the_map_round_the_room(tmp_path_factory):
+    """Measured at half resolution: 100 % of frames on seeds 1, 2, 3 and 11 (the previous
+    tracker: 13 %); the scale drifts on the lap, which looks ahead along the motion (little
+    parallax): RMS 8, 20, 26 and 33 mm, max 13-50 mm. At full resolution seed 11 gives
+    10.3 mm RMS and 15.3 mm max (bench)."""
+    score, results, truth = replay(tmp_path_factory, "turn_after_init", seconds=75.0)
+    assert score.coverage >= 0.99, score
+    assert score.max_m < 0.060 and score.rmse_m < 0.040, score
+    tracked = tracking_score(results, truth)
+    assert tracked.with_pose > 600 and tracked.consistent >= 0.97 and tracked.beyond_5_sigma == 0, tracked
+    assert tracked.without_covariance == 0
+
+
+@pytest.mark.parametrize("name, rmse_mm", [("spin_in_place", 8.0), ("spin_in_place_fast", 8.0)])
+def test_turning_on_the_spot_with_the_camera_ahead_of_the_axis_keeps_the_map(tmp_path_factory, name, rmse_mm):
+    """45 deg/s at 10 fps and 90 deg/s at 30 fps, 0.2 m lever arm, right after
+    initialisation. Measured: 100 %, 3.1 and 2.8 mm RMS."""
+    score, results, truth = replay(tmp_path_factory, name, seconds=14.0 if name == "spin_in_place" else 10.0)
+    assert score.coverage >= 0.99 and score.max_m < 0.030 and score.rmse_m < rmse_mm / 1000, score
+    tracked = tracking_score(results, truth)
+    assert tracked.consistent >= 0.97 and tracked.beyond_5_sigma == 0, tracked
+
+
+def test_pure_rotation_on_the_axis_holds_the_orientation_throughout_and_the_position(tmp_path_factory):
+    """Nothing can be triangulated: the orientation comes from the tracks' rays and the
+    position is held (measured: 100 % of frames, 6.7 mm RMS, orientation within 0.1 deg)."""
+    score, results, truth = replay(tmp_path_factory, "spin_on_axis", seconds=14.0)
+    assert score.coverage >= 0.95 and score.max_m < 0.030, score
+    held = [r for r in results if r.detail and r.detail.startswith("held")]
+    assert len(held) >= 40
+    for r, t in zip(results, truth, strict=True):
+        if r.estimate is not None:
+            assert np.degrees(r.estimate.T_world_camera.rotation_angle_to(t.T_world_camera)) < 0.5
+    tracked = tracking_score(results, truth)
+    assert tracked.consistent >= 0.97 and tracked.beyond_5_sigma == 0, tracked
+
+
+def test_passers_by_neither_enter_the_map_nor_lose_the_pose(tmp_path_factory):
+    """Three person-sized panels walk across at 0.6-1.8 m, the first over the cube while
+    the tracker initialises. Measured: 100 % of frames, 2.6 mm RMS, 12 mm max."""
+    score, results, truth = replay(tmp_path_factory, "passers_by", seconds=24.0)
+    assert score.coverage >= 0.99 and score.max_m < 0.030 and score.rmse_m < 0.005, score
+    tracked = tracking_score(results, truth)
+    assert tracked.consistent >= 0.97 and tracked.beyond_5_sigma == 0, tracked
+
+
+def test_agile_swings_with_blur_and_exposure_steps_keep_the_pose(tmp_path_factory):
+    """30 fps, +-50 deg yaw swings, 4 ms exposure integrated over the motion, gain steps."""
+    score, results, truth = replay(tmp_path_factory, "agile", seconds=12.0)
+    assert score.coverage >= 0.99 and score.max_m < 0.030 and score.rmse_m < 0.006, score
+    tracked = tracking_score(results, truth)
+    assert tracked.consistent >= 0.97 and tracked.beyond_5_sigma == 0, tracked
