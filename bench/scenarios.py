@@ -1,0 +1,146 @@
+"""The tracker through the robot-motion scenarios, the new tracker and the previous one
+side by side, at full resolution (1280x1024, the paper's camera).
+
+Each scenario of ``fakes.scenarios`` (and ``paper``, ``orbit``, ``room_walk``, which must be
+no worse than before) is rendered once (default length, seed 1) and replayed through
+``cubeloc track`` in a child process, bundle adjustment in the frame loop (deterministic):
+
+- **new**: this tree, with ``--poses`` (the covariance of every pose);
+- **previous**: the tracker of commit ``BASELINE_COMMIT`` (the last one before the robot
+  motions), checked out with ``git worktree`` into a temporary directory and run the
+  same way, from its own tree. It publishes no covariance while tracking, so it has no
+  consistency figure.
+
+Per run: coverage (frames with a pose / frames), RMS and max position error with no
+alignment, the longest stretch without a pose, the share of poses inside their own 3-sigma
+ellipsoid (NEES <= 14.16, 3 dof) and the count beyond 5 sigma, frames per second (the
+replay's own figure: PNG decoding excluded), and the child's peak RSS (VmHWM).
+
+Environment: ``CUBELOC_BENCH_SEQUENCES=DIR`` keeps the renders (an hour's worth at full
+resolution, agile's exposure-long blur the most) for later runs; ``CUBELOC_BENCH_SCENARIOS``
+a comma-separated subset; ``CUBELOC_BENCH_BASELINE=DIR`` an existing checkout of the
+previous tracker instead of a fresh worktree.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import machine_line, markdown_table
+
+TITLE = "Tracker through robot motions: new and previous side by side"
+BASELINE_COMMIT = "9580d93"
+SCENARIOS = ("turn_after_init", "spin_in_place", "spin_in_place_fast", "spin_on_axis", "agile", "passers_by",
+             "blank_wall", "long_lap", "paper", "orbit", "room_walk")
+REPO = Path(__file__).resolve().parents[1]
+# run cubeloc's CLI, then report the process's peak resident memory on stderr
+_WRAPPER = (
+    "import atexit, runpy, sys\n"
+    "def _peak():\n"
+    "    for line in open('/proc/self/status'):\n"
+    "        if line.startswith('VmHWM:'):\n"
+    "            print('PEAK_RSS_KB', line.split()[1], file=sys.stderr)\n"
+    "atexit.register(_peak)\n"
+    "sys.argv = ['cubeloc', *sys.argv[1:]]\n"
+    "runpy.run_module('daemon.cli', run_name='__main__')\n"
+)
+
+
+def _render(root: Path, name: str) -> Path:
+    from fakes.sequence import write_synthetic_sequence
+
+    out = root / name
+    if not (out / "groundtruth.tum").is_file():
+        write_synthetic_sequence(out, name, seed=1)
+    return out
+
+
+def _baseline_tree(work: Path) -> Path | None:
+    given = os.environ.get("CUBELOC_BENCH_BASELINE")
+    if given:
+        return Path(given)
+    tree = work / "previous"
+    done = subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", str(tree), BASELINE_COMMIT],
+                          capture_output=True, text=True)
+    return tree if done.returncode == 0 else None
+
+
+def _track(tree: Path, sequence: Path, out: Path, poses: bool) -> dict:
+    """One ``cubeloc track`` in a child process from ``tree``: its summary figures."""
+    args = [sys.executable, "-c", _WRAPPER, "track", "--target", str(sequence / "target.yaml"),
+            "--calib", str(sequence / "camera.yaml"), "--sequence", str(sequence), "--out", str(out)]
+    if poses:
+        args += ["--poses", str(out.with_suffix(".jsonl"))]
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    done = subprocess.run(args, cwd=tree, env=env, capture_output=True, text=True, timeout=3600)
+    if done.returncode != 0:
+        raise RuntimeError(f"cubeloc track in {tree} failed: {done.stderr.strip()[-400:]}")
+    fps = re.search(r"\(([0-9.]+) fps\)", done.stdout)
+    peak = re.search(r"PEAK_RSS_KB (\d+)", done.stderr)
+    return {"fps": float(fps.group(1)) if fps else float("nan"),
+            "peak_mb": int(peak.group(1)) / 1024 if peak else float("nan")}
+
+
+def _score(sequence: Path, out: Path, poses: bool):
+    from drivers.sequence import read_sequence_index
+    from positioning.evaluation import score_run
+    from positioning.trajectory_io import StampedPose, read_tum
+
+    truth = read_tum(sequence / "groundtruth.tum")
+    stamps = [e.stamp_ns for e in read_sequence_index(sequence)]
+    by_stamp: dict[int, tuple] = {}
+    if poses:
+        from positioning.geometry import Transform
+
+        for line in out.with_suffix(".jsonl").read_text().splitlines():
+            doc = json.loads(line)
+            pose = Transform.from_quaternion(np.array(doc["position"]), np.array(doc["orientation"]))
+            cov = None if doc["covariance"] is None else np.array(doc["covariance"]).reshape(6, 6)
+            by_stamp[doc["stamp_ns"]] = (StampedPose(doc["stamp_ns"], pose), cov)
+    else:
+        for p in read_tum(out):
+            by_stamp[min(stamps, key=lambda s, t=p.stamp_ns: abs(s - t))] = (p, None)
+    return score_run(truth, [by_stamp.get(s) for s in stamps])
+
+
+def run() -> str:
+    chosen = [s for s in os.environ.get("CUBELOC_BENCH_SCENARIOS", ",".join(SCENARIOS)).split(",") if s]
+    keep = os.environ.get("CUBELOC_BENCH_SEQUENCES")
+    with tempfile.TemporaryDirectory(prefix="cubeloc-bench-scenarios-") as tmp:
+        work = Path(tmp)
+        root = Path(keep) if keep else work / "sequences"
+        root.mkdir(parents=True, exist_ok=True)
+        previous = _baseline_tree(work)
+        rows = []
+        try:
+            for name in chosen:
+                sequence = _render(root, name)
+                for label, tree, poses in (("new", REPO, True), ("previous", previous, False)):
+                    if tree is None:
+                        continue
+                    out = work / f"{name}-{label}.tum"
+                    figures = _track(tree, sequence, out, poses)
+                    s = _score(sequence, out, poses)
+                    rows.append([name, label, f"{100 * s.coverage:.1f} %", f"{s.rmse_m * 1000:.2f}",
+                                 f"{s.max_m * 1000:.1f}", str(s.longest_gap_frames),
+                                 f"{100 * s.consistent:.1f} % ({s.beyond_5_sigma})" if poses else "-",
+                                 f"{figures['fps']:.1f}", f"{figures['peak_mb']:.0f}"])
+                    print("  " + " | ".join(rows[-1]), flush=True)
+        finally:
+            if previous is not None and not os.environ.get("CUBELOC_BENCH_BASELINE"):
+                subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(previous)],
+                               capture_output=True)
+    table = markdown_table(["scenario", "tracker", "coverage", "RMS mm", "max mm", "longest gap (frames)",
+                            "inside 3 sigma (beyond 5)", "fps", "peak RSS MB"], rows)
+    return (f"{machine_line()}. `cubeloc track` per scenario (seed 1, default length, 1280x1024), bundle "
+            f"adjustment in the frame loop; **previous** = commit {BASELINE_COMMIT}. Errors are positions "
+            "against the ground truth with no alignment; fps is the replay's own (PNG decoding excluded), on "
+            "a shared machine.\n\n" + table)
