@@ -30,12 +30,27 @@ class LoopStats:
         self.last_detail = ""
         self.last_tags: tuple[int, ...] = ()
         self.last_seq = -1
+        # Time without a pose once there has been one (the tracker lost, the lens covered),
+        # and frames held on rays (orientation measured, position by the motion model).
+        self._had_pose = False
+        self._last_frame_at: float | None = None
+        self._lost_since: float | None = None
+        self.lost_s = 0.0
+        self.held_frames = 0
         # Per-second summary counters (reset by ``take_summary``).
         self._summary = collections.Counter()
 
-    def record_frame(self, seq: int, status: str, detail: str, tags: tuple[int, ...]) -> None:
+    def record_frame(self, seq: int, status: str, detail: str, tags: tuple[int, ...],
+                     has_pose: bool = False) -> None:
         now = time.monotonic()
         with self._lock:
+            if self._had_pose and not has_pose and self._last_frame_at is not None:
+                self.lost_s += now - self._last_frame_at
+                self._lost_since = self._lost_since if self._lost_since is not None else self._last_frame_at
+            if has_pose:
+                self._had_pose, self._lost_since = True, None
+                self.held_frames += bool(detail) and detail.startswith("held")
+            self._last_frame_at = now
             self.frames += 1
             self.last_seq = seq
             self.last_status, self.last_detail, self.last_tags = status, detail, tags
@@ -44,6 +59,11 @@ class LoopStats:
                 self._frame_times.popleft()
             self._summary["frames"] += 1
             self._summary[f"status:{status}"] += 1
+
+    def lost_now_s(self) -> float:
+        """How long the frames have come without a pose (0 while there is one)."""
+        with self._lock:
+            return 0.0 if self._lost_since is None else time.monotonic() - self._lost_since
 
     def record_pose(self, latency_ms: float) -> None:
         with self._lock:

@@ -144,7 +144,8 @@ class ProcessingLoop:
         self._publish_pose(payload)
         self._stats.record_pose((time.monotonic_ns() - item.received_monotonic_ns) / 1e6)
         # On status, a frame with a pose shows the pose's state ("target", "tracking"...).
-        self._stats.record_frame(item.seq, result.estimate.state.value, result.detail, result.tags_seen)
+        self._stats.record_frame(item.seq, result.estimate.state.value, result.detail, result.tags_seen,
+                                 has_pose=True)
 
     def _log_summary(self) -> None:
         summary = self._stats.take_summary()

@@ -161,7 +161,10 @@ class Daemon:
             uptime_s=time.monotonic() - self._started,
             version=__version__,
             tags_seen=stats.last_tags,
-            extra={"processor_errors": stats.processor_errors, "faults": self.capture.faults()},
+            extra={"processor_errors": stats.processor_errors, "faults": self.capture.faults(),
+                   # time without a pose since the first one, and now; frames held on rays
+                   "lost_s": round(stats.lost_s, 2), "lost_now_s": round(stats.lost_now_s(), 2),
+                   "held_frames": stats.held_frames},
         )
 
     def _only_bad_frames(self, last_fault_at: float) -> bool:

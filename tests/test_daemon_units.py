@@ -174,6 +174,22 @@ def test_loop_stats_percentiles_and_summary():
     assert not stats.take_summary()
 
 
+def test_loop_stats_count_the_time_without_a_pose_once_there_was_one_and_the_held_frames():
+    stats = LoopStats()
+    stats.record_frame(0, "initialising", "waiting for the target", ())
+    time.sleep(0.05)
+    stats.record_frame(1, "target", "", (0,), has_pose=True)
+    assert stats.lost_s == 0.0 and stats.lost_now_s() == 0.0  # waiting at the start is not lost
+    stats.record_frame(2, "tracking", "held: orientation from rays", (), has_pose=True)
+    time.sleep(0.05)
+    stats.record_frame(3, "lost", "", ())
+    time.sleep(0.05)
+    stats.record_frame(4, "lost", "", ())
+    assert 0.09 <= stats.lost_s <= 0.5 and stats.lost_now_s() >= 0.09
+    stats.record_frame(5, "relocalised", "", (), has_pose=True)
+    assert stats.lost_now_s() == 0.0 and stats.held_frames == 1
+
+
 # -- configuration errors: one line, exit 2, nothing started ------------------------------
 def _write_files(tmp_path, width=1280, height=1024):
     write_camera_info(tmp_path / "camera.yaml", paper_camera(width, height))

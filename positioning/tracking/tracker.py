@@ -12,10 +12,20 @@ other source) and, when the target is in view, a trusted target pose with its co
   the map cannot drift while the target is visible. When the target comes back and
   disagrees with the tracker by more than ``relocalised_jump_*``, the drifted part of the
   map is moved by the difference and the frame is published as RELOCALISED.
-- Keyframes on baseline (parallax) and visibility criteria; tracks without a point are
-  triangulated against the first keyframe that saw them; a sliding-window bundle
-  adjustment runs after each keyframe, in a worker thread when ``bundle.background``.
-- No pose from either source: the frame is "lost" (no estimate). Recovery is by the
+- A target pose less sure than the map (a grazing face, the image edge) neither corrects
+  nor anchors it: the map's pose goes out (a 24 mm-sigma target pose had moved the map by
+  12 mm on ``agile``).
+- Keyframes on baseline (parallax) and visibility criteria, on every frame while the map
+  runs short (a turn carries its points out of view); tracks without a point are
+  triangulated against the first keyframe that saw them, from 0.7 deg of parallax (0.3
+  while the map runs short); a sliding-window bundle adjustment runs after each keyframe,
+  in a worker thread when ``bundle.background``.
+- Too few map points for PnP (a turn on the spot, a passer-by): the pose is *held*
+  (``hold.RayHold``): orientation from every track's ray, position from the points left
+  and the motion model; nothing at all in view: the motion model for at most 0.5 s.
+- Every pose carries a 6x6 covariance: the target's, or this frame's fit (``pose_fit``)
+  plus the drift since the target was last trusted (``hold.Drift``).
+- No pose from any of these: the frame is "lost" (no estimate). Recovery is by the
   target, or by ``relocalised()`` when the caller matched the image to keyframes.
 """
 
@@ -32,10 +42,11 @@ from calib.camera_info import CameraCalibration
 from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.tracking import bundle
+from positioning.tracking.hold import Drift, RayHold
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import Rays, fit_pose
+from positioning.tracking.pose_fit import fit_pose
 from positioning.tracking.twoview import project_normalised, triangulate, undistort
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
@@ -77,12 +88,10 @@ class Tracker:
         self._frames_since_keyframe = 0
         self._target_seen = False  # the last frame had a trusted target pose
         self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
-        # track id -> (world camera centre, world unit ray) where the track was born: the
-        # rays that hold the orientation when too few map points are in view
-        self._births: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._holding_since: int | None = None  # stamp of the first frame held on rays
-        self._path_m = 0.0  # path length since the last trusted target frame (drift grows with it)
-        self._turned_rad = 0.0  # and the rotation
+        # the tracks' rays that hold the orientation when too few map points are in view,
+        # and the drift since the target that a tracking pose's covariance carries
+        self._hold = RayHold(self.options, self.fx)
+        self._drift = Drift(self.options)
 
     def close(self) -> None:
         self._drain_bundle()
@@ -104,7 +113,7 @@ class Tracker:
         tracked, inliers, drop, rms, covariance = self._pnp(tracks, xn, prediction)
         held = None
         if tracked is None and trusted is None and prediction is not None:
-            held = self._hold(stamp_ns, tracks, xn, prediction)
+            held = self._hold.hold(stamp_ns, self._last, self._last_stamp, prediction, tracks, xn, self.map)
         if trusted is not None and tracked is not None and not self.lost and not self._anchors(trusted):
             # the target at a grazing angle or the image edge is less sure than the map:
             # the map's pose goes out, and the target neither corrects nor anchors it
@@ -127,23 +136,23 @@ class Tracker:
         elif tracked is not None or held is not None:
             pose, covariance = (tracked, covariance) if tracked is not None else held
             state = PoseState.RELOCALISED if self.lost else PoseState.TRACKING
-            estimate = PoseEstimate(pose, state, 0, (), rms, self._with_drift(pose, covariance))
+            estimate = PoseEstimate(pose, state, 0, (), rms, self._drift.covariance(self._last, pose, covariance))
         else:
             self.lost = True
             self._velocity = None
             self._target_seen = False
-            self._holding_since = None
+            self._hold.end()
             detail = f"{inliers} map points agree with a pose, {self.options.min_pnp_inliers} needed"
             return TrackerOutput(FrameResult(None, "lost", detail), False, drop)
 
         forced = state is PoseState.RELOCALISED
         self._target_seen = trusted is not None
         if trusted is not None:
-            self._path_m = self._turned_rad = 0.0
+            self._drift.reset()
         self.lost = False
         if held is None:
-            self._holding_since = None
-        self._rebase_rays(pose if held is None else None, tracks.ids, xn)
+            self._hold.end()
+        self._hold.rebase(pose if held is None else None, tracks.ids, xn)
         self._update_motion(pose, stamp_ns)
         self._frame_pose = pose
         if held is not None:
@@ -157,90 +166,7 @@ class Tracker:
     @property
     def holding(self) -> bool:
         """The last pose came from rays and the motion model (too few map points in view)."""
-        return self._holding_since is not None
-
-    def _hold(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray, prediction: Transform
-              ) -> tuple[Transform, np.ndarray] | None:
-        """Too few map points for PnP: the orientation from every track's ray (pose_fit),
-        the position from the map points still in view and the motion model, whose
-        standard deviation grows with the time held. None when that is not enough."""
-        o = self.options
-        if self._holding_since is None:
-            self._holding_since = self._last_stamp
-        held_s = (stamp_ns - self._holding_since) / 1e9
-        sigma_m = o.hold_sigma_m + o.hold_sigma_m_per_s * held_s
-        if held_s > o.max_hold_s:
-            return None
-        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
-        born = np.array([not h and int(t) in self._births for t, h in zip(tracks.ids, has, strict=True)], bool)
-        if born.sum() < o.min_hold_rays:
-            return self._coast(held_s, prediction)
-        points = np.array([self.map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)
-        depths = prediction.inverse().apply(points)[:, 2] if has.any() else np.zeros(0)
-        depths = depths[depths > 0]
-        depth = float(np.median(depths)) if len(depths) else o.hold_default_depth_m
-        centres = np.array([self._births[int(t)][0] for t in tracks.ids[born]])
-        directions = np.array([self._births[int(t)][1] for t in tracks.ids[born]])
-        rays = Rays(centres, directions, xn[born], 1.0 / depth)
-        # no measured translation: the motion model's dies away (it moved the prediction)
-        decay = 0.5 ** ((stamp_ns - self._last_stamp) / 1e9 / o.hold_velocity_half_life_s)
-        held_at = self._last.translation + decay * (prediction.translation - self._last.translation)
-        fit = fit_pose(prediction, points, xn[has], rays, fx=self.fx, sigma_px=o.track_sigma_px,
-                       prior_position=(held_at, sigma_m))
-        if fit is not None and 0 < fit.point_inliers.sum() < o.min_hold_points:
-            # a handful of points pull the position wherever their few rays allow (measured:
-            # 2 points moved a held pose 40 mm): the rays and the motion model alone
-            fit = fit_pose(prediction, np.zeros((0, 3)), np.zeros((0, 2)), rays, fx=self.fx,
-                           sigma_px=o.track_sigma_px, prior_position=(held_at, sigma_m))
-        if fit is None or fit.ray_inliers.sum() < max(o.min_hold_rays, o.min_hold_ray_fraction * born.sum()):
-            return None
-        rotation_sigma = np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[3:, 3:])))
-        if np.degrees(rotation_sigma) > o.max_hold_rotation_sigma_deg:
-            return None
-        return fit.T_world_camera, fit.covariance
-
-    def _coast(self, held_s: float, prediction: Transform) -> tuple[Transform, np.ndarray] | None:
-        """Nothing to see (a passer-by filling the view): the motion model's pose for at
-        most ``max_coast_s`` since the last measured one, with the covariance of a robot
-        that may have changed its speed by ``coast_accel_m_s2`` and its turn rate by
-        ``coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2)."""
-        o = self.options
-        if held_s > o.max_coast_s:
-            return None
-        t = max(held_s, 1e-3)
-        covariance = np.zeros((6, 6))
-        covariance[:3, :3] = np.eye(3) * (o.hold_sigma_m + 0.5 * o.coast_accel_m_s2 * t * t) ** 2
-        covariance[3:, 3:] = np.eye(3) * (0.5 * o.coast_angular_accel_rad_s2 * t * t) ** 2
-        return prediction, covariance
-
-    def _rebase_rays(self, pose: Transform | None, ids: np.ndarray, xn: np.ndarray) -> None:
-        """Keep the rays of the live tracks. On a frame with a measured pose (``pose``) every
-        ray starts again there: a ray is only as good as the pose it starts from, and the
-        newest measured one is the best (a correction of the map moves the old ones)."""
-        if pose is None:
-            self._births = {int(t): self._births[int(t)] for t in ids if int(t) in self._births}
-            return
-        rays = np.column_stack([xn, np.ones(len(xn))]) @ pose.rotation.T
-        rays /= np.linalg.norm(rays, axis=1)[:, None]
-        centre = pose.translation
-        self._births = {int(t): (centre, ray) for t, ray in zip(ids, rays, strict=True)}
-
-    def _with_drift(self, pose: Transform, covariance: np.ndarray | None) -> np.ndarray | None:
-        """The pose's covariance from this frame's measurements plus the map's drift since
-        the target was last trusted: a standard deviation that grows with the path and
-        the rotation since (``drift_per_m``, ``drift_rad_per_rad``)."""
-        if covariance is None:
-            return None
-        o = self.options
-        if self._last is not None:
-            self._path_m += float(np.linalg.norm(pose.translation - self._last.translation))
-            self._turned_rad += float(self._last.rotation_angle_to(pose))
-        position_sigma = o.drift_floor_m + o.drift_per_m * self._path_m + o.drift_m_per_rad * self._turned_rad
-        rotation_sigma = o.drift_rad_per_m * self._path_m + o.drift_rad_per_rad * self._turned_rad
-        total = np.array(covariance, dtype=np.float64, copy=True)
-        total[:3, :3] += np.eye(3) * position_sigma**2
-        total[3:, 3:] += np.eye(3) * rotation_sigma**2
-        return total
+        return self._hold.holding
 
     def add_tracks(self, tracks: Tracks) -> None:
         """Fresh corners detected in the frame just stepped (after ``want_features``)."""
@@ -250,9 +176,7 @@ class Tracker:
         pose = self._frame_pose if self._frame_pose is not None else (
             self._frame_target.T_world_camera if self._frame_target is not None else None)
         if pose is not None:
-            kept = self._births
-            self._rebase_rays(pose, tracks.ids, xn)
-            self._births = {**kept, **self._births}
+            self._hold.add(pose, tracks.ids, xn)
         all_ids = np.concatenate([self._frame_tracks.ids, tracks.ids])
         all_xn = np.concatenate([self._frame_xn, xn])
         self._frame_tracks = Tracks(all_ids, np.concatenate([self._frame_tracks.pixels, tracks.pixels]))
@@ -271,8 +195,9 @@ class Tracker:
         the matched map points again as ``tracks``. The frame becomes a keyframe, so the
         fresh corners that ``add_tracks`` brings next can be triangulated against it.
         Returns the pose's covariance: the match's (``covariance``) plus the drift."""
-        covariance = self._with_drift(pose, covariance)
-        self._holding_since = None
+        self._drift.relocalised(covariance)
+        covariance = self._drift.covariance(self._last, pose, covariance)
+        self._hold.end()
         self.lost = False
         self._last, self._last_stamp, self._velocity = pose, stamp_ns, None
         self._frame_pose, self._frame_stamp = pose, stamp_ns
@@ -293,24 +218,25 @@ class Tracker:
         if trusted is None:
             status = InitStatus.NO_TARGET_POSE
             prediction = self._predict(stamp_ns)
-            held = self._hold(stamp_ns, tracks, xn, prediction) if prediction is not None else None
+            held = None if prediction is None else self._hold.hold(stamp_ns, self._last, self._last_stamp,
+                                                                    prediction, tracks, xn, self.map)
             if held is None:
-                self._holding_since = None
+                self._hold.end()
                 return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty,
                                      status)
             # the target hidden (a passer-by) before the map exists: held on the rays of
             # tracks born on target poses, the map still waits for the target
             pose, covariance = held
-            self._rebase_rays(None, tracks.ids, xn)
+            self._hold.rebase(None, tracks.ids, xn)
             self._update_motion(pose, stamp_ns)
             self._frame_pose = pose
-            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, self._with_drift(pose, covariance))
+            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, self._drift.covariance(self._last, pose, covariance))
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
                                  empty, status)
-        self._holding_since = None
+        self._hold.end()
         estimate = PoseEstimate(trusted.T_world_camera, PoseState.TARGET, trusted.planes, trusted.tag_ids,
                                 trusted.reproj_rms_px, trusted.covariance)
-        self._rebase_rays(trusted.T_world_camera, tracks.ids, xn)
+        self._hold.rebase(trusted.T_world_camera, tracks.ids, xn)
         self._update_motion(trusted.T_world_camera, stamp_ns)
         if not self._anchors(trusted):
             # published, but too uncertain to fix the map's scale and frame

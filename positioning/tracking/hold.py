@@ -1,0 +1,154 @@
+"""When the map runs short: hold the pose on the tracks' rays, coast, and the drift.
+
+``RayHold`` keeps, for every live track, the ray it was last seen along from a measured
+pose (its camera centre and world direction). When PnP has too few map points (a turn on
+the spot, a passer-by in front of the map) ``hold`` fits the orientation to those rays and
+the position to the map points still in view and the motion model (``pose_fit``), whose
+standard deviation grows with the time held; with too few rays as well it coasts on the
+motion model alone for at most ``max_coast_s``.
+
+``Drift`` adds to a tracking pose's covariance what its own measurements cannot know: how
+far the map may have drifted since the target was last trusted, growing with the path
+and the rotation since.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from positioning.geometry import Transform
+from positioning.tracking.map import Map
+from positioning.tracking.options import TrackerOptions
+from positioning.tracking.pose_fit import Rays, fit_pose
+from positioning.tracking.types import Tracks
+
+Held = tuple[Transform, np.ndarray]  # pose and its 6x6 covariance (ROS order)
+
+
+class RayHold:
+    def __init__(self, options: TrackerOptions, fx: float) -> None:
+        self.options = options
+        self.fx = fx
+        # track id -> (world camera centre, world unit ray) of its last measured sighting
+        self.rays: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.since: int | None = None  # stamp of the last measured pose before the hold
+
+    @property
+    def holding(self) -> bool:
+        return self.since is not None
+
+    def end(self) -> None:
+        self.since = None
+
+    def rebase(self, pose: Transform | None, ids: np.ndarray, xn: np.ndarray) -> None:
+        """Keep the rays of the live tracks ``ids``. On a frame with a measured pose
+        (``pose``) every ray starts again there: a ray is only as good as the pose it
+        starts from, and the newest measured one is the best (a correction of the map
+        moves the old ones)."""
+        if pose is None:
+            self.rays = {int(t): self.rays[int(t)] for t in ids if int(t) in self.rays}
+            return
+        self.rays = self._from(pose, ids, xn)
+
+    def add(self, pose: Transform, ids: np.ndarray, xn: np.ndarray) -> None:
+        """Rays for new tracks, born in a frame of pose ``pose``."""
+        self.rays.update(self._from(pose, ids, xn))
+
+    @staticmethod
+    def _from(pose: Transform, ids: np.ndarray, xn: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        directions = np.column_stack([xn, np.ones(len(xn))]) @ pose.rotation.T
+        directions /= np.linalg.norm(directions, axis=1)[:, None]
+        return {int(t): (pose.translation, d) for t, d in zip(ids, directions, strict=True)}
+
+    def hold(self, stamp_ns: int, last: Transform, last_stamp: int, prediction: Transform, tracks: Tracks,
+             xn: np.ndarray, world_map: Map) -> Held | None:
+        """The held pose of the frame at ``stamp_ns`` (``last`` is the last frame's pose,
+        ``prediction`` the motion model's), or None when rays and time do not allow it."""
+        o = self.options
+        if self.since is None:
+            self.since = last_stamp
+        held_s = (stamp_ns - self.since) / 1e9
+        if held_s > o.max_hold_s:
+            return None
+        has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
+        born = np.array([not h and int(t) in self.rays for t, h in zip(tracks.ids, has, strict=True)], bool)
+        if born.sum() < o.min_hold_rays:
+            return self._coast(held_s, prediction)
+        points = np.array([world_map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)
+        depths = prediction.inverse().apply(points)[:, 2] if has.any() else np.zeros(0)
+        depths = depths[depths > 0]
+        depth = float(np.median(depths)) if len(depths) else o.hold_default_depth_m
+        centres = np.array([self.rays[int(t)][0] for t in tracks.ids[born]])
+        directions = np.array([self.rays[int(t)][1] for t in tracks.ids[born]])
+        rays = Rays(centres, directions, xn[born], 1.0 / depth)
+        # no measured translation: the motion model's dies away (it moved the prediction)
+        decay = 0.5 ** ((stamp_ns - last_stamp) / 1e9 / o.hold_velocity_half_life_s)
+        prior = (last.translation + decay * (prediction.translation - last.translation),
+                 o.hold_sigma_m + o.hold_sigma_m_per_s * held_s)
+        fit = fit_pose(prediction, points, xn[has], rays, fx=self.fx, sigma_px=o.track_sigma_px,
+                       prior_position=prior)
+        if fit is not None and 0 < fit.point_inliers.sum() < o.min_hold_points:
+            # a handful of points pull the position wherever their few rays allow (measured:
+            # 2 points moved a held pose 40 mm): the rays and the motion model alone
+            fit = fit_pose(prediction, np.zeros((0, 3)), np.zeros((0, 2)), rays, fx=self.fx,
+                           sigma_px=o.track_sigma_px, prior_position=prior)
+        if fit is None or fit.ray_inliers.sum() < max(o.min_hold_rays, o.min_hold_ray_fraction * born.sum()):
+            return None
+        rotation_sigma = np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[3:, 3:])))
+        if np.degrees(rotation_sigma) > o.max_hold_rotation_sigma_deg:
+            return None
+        return fit.T_world_camera, fit.covariance
+
+    def _coast(self, held_s: float, prediction: Transform) -> Held | None:
+        """Nothing to see (a passer-by filling the view): the motion model's pose for at
+        most ``max_coast_s`` since the last measured one, with the covariance of a robot
+        that may have changed its speed by ``coast_accel_m_s2`` and its turn rate by
+        ``coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2)."""
+        o = self.options
+        if held_s > o.max_coast_s:
+            return None
+        t = max(held_s, 1e-3)
+        covariance = np.zeros((6, 6))
+        covariance[:3, :3] = np.eye(3) * (o.hold_sigma_m + 0.5 * o.coast_accel_m_s2 * t * t) ** 2
+        covariance[3:, 3:] = np.eye(3) * (0.5 * o.coast_angular_accel_rad_s2 * t * t) ** 2
+        return prediction, covariance
+
+
+class Drift:
+    """Path and rotation since the target was last trusted, and what they may have cost."""
+
+    def __init__(self, options: TrackerOptions) -> None:
+        self.options = options
+        self.path_m = 0.0
+        self.turned_rad = 0.0
+        self.floor_m = options.drift_floor_m
+
+    def reset(self) -> None:
+        """The target is trusted again: nothing has drifted."""
+        self.path_m = self.turned_rad = 0.0
+        self.floor_m = self.options.drift_floor_m
+
+    def relocalised(self, covariance: np.ndarray | None) -> None:
+        """A relocalisation against keyframes: the map is built on from its pose, so its
+        uncertainty stays in every pose after it until the target returns."""
+        if covariance is not None:
+            sigma = float(np.sqrt(np.max(np.linalg.eigvalsh(np.asarray(covariance)[:3, :3]))))
+            self.floor_m = max(self.floor_m, sigma)
+
+    def covariance(self, previous: Transform | None, pose: Transform, measured: np.ndarray | None
+                   ) -> np.ndarray | None:
+        """``measured`` (this frame's own covariance) plus the drift since the target, a
+        standard deviation growing with the path and rotation (``drift_per_m`` ...);
+        ``previous`` is the last frame's pose, from which the path goes on."""
+        if previous is not None:
+            self.path_m += float(np.linalg.norm(pose.translation - previous.translation))
+            self.turned_rad += float(previous.rotation_angle_to(pose))
+        if measured is None:
+            return None
+        o = self.options
+        position_sigma = self.floor_m + o.drift_per_m * self.path_m + o.drift_m_per_rad * self.turned_rad
+        rotation_sigma = o.drift_rad_per_m * self.path_m + o.drift_rad_per_rad * self.turned_rad
+        total = np.array(measured, dtype=np.float64, copy=True)
+        total[:3, :3] += np.eye(3) * position_sigma**2
+        total[3:, 3:] += np.eye(3) * rotation_sigma**2
+        return total
