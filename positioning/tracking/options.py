@@ -113,6 +113,7 @@ class TrackerOptions:
     # this); in plenty the points of 0.3-0.7 deg cost accuracy (paper at half resolution:
     # 8.3 mm RMS with 0.3 always, 4.1 mm with 0.7)
     triangulation_starving_parallax_deg: float = 0.3
+    triangulation_starving_points: int = 40  # "runs short": fewer map points tracked than this
     triangulation_max_reproj_px: float = 2.0
     max_keyframes: int = 40  # older keyframes and the points only they saw are culled
     # target

@@ -425,7 +425,7 @@ class Tracker:
         kf = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn, target_world, target_xn)
         self._frame_keyframe = kf
         self._frames_since_keyframe = 0
-        self._triangulate(kf, o.triangulation_starving_parallax_deg if inliers < o.keyframe_starving_points
+        self._triangulate(kf, o.triangulation_starving_parallax_deg if inliers < o.triangulation_starving_points
                           else o.triangulation_min_parallax_deg)
         self._kf_points_at_insert = sum(1 for t in kf.track_ids if int(t) in self.map.points)
         self.map.cull(o.max_keyframes, {int(t) for t in tracks.ids})
