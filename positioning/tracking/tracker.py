@@ -114,6 +114,10 @@ class Tracker:
         held = None
         if tracked is None and trusted is None and prediction is not None:
             held = self._hold.hold(stamp_ns, self._last, self._last_stamp, prediction, tracks, xn, self.map)
+        if trusted is not None and tracked is not None and self._anchors(trusted):
+            # how far the map's own pose is from the target's: what a tracking pose may be
+            # off by as soon as the target leaves (the drift's floor)
+            self._drift.agreement(float(np.linalg.norm(tracked.translation - trusted.T_world_camera.translation)))
         if trusted is not None and tracked is not None and not self.lost and not self._anchors(trusted):
             # the target at a grazing angle or the image edge is less sure than the map:
             # the map's pose goes out, and the target neither corrects nor anchors it
