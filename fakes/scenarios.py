@@ -103,12 +103,27 @@ def _start_rows() -> tuple[float, float]:
     return float(np.arctan2(START[1], START[0])), float(np.hypot(*START))
 
 
-def _turn_after_init(times: np.ndarray, seconds: float) -> list[Transform]:
+def _on_the_cube(round_deg: float, until_s: float) -> list[list[float]]:
+    """The opening rows (t, x, y, yaw, pitch): from the start, ``round_deg`` round the cube
+    by ``until_s``, looking at it all the way (the parallax initialisation needs)."""
     a0, r0 = _start_rows()
-    x1, y1 = _polar(a0 + 7 * DEG, r0)
-    yaw0, pitch0 = _look_at_cube(*START)
-    yaw1, pitch1 = _look_at_cube(x1, y1)
-    rows = [[0.0, *START, yaw0, pitch0], [3.0, x1, y1, yaw1, pitch1]]
+    x1, y1 = _polar(a0 + round_deg * DEG, r0)
+    return [[0.0, *START, *_look_at_cube(*START)], [until_s, x1, y1, *_look_at_cube(x1, y1)]]
+
+
+def _back_on_the_cube(rows: list[list[float]], azimuth: float, radius: float, seconds: float) -> list[list[float]]:
+    """The closing rows: at ``azimuth``/``radius`` facing the cube for the last 3 s, the
+    yaw unwrapped to the nearest turn from the last row's."""
+    xe, ye = _polar(azimuth, radius)
+    yaw_e, pitch_e = _look_at_cube(xe, ye)
+    yaw_e += 2 * np.pi * round((rows[-1][3] - yaw_e) / (2 * np.pi))
+    return [[seconds - 3.0, xe, ye, yaw_e, pitch_e], [seconds, xe, ye, yaw_e, pitch_e]]
+
+
+def _turn_after_init(times: np.ndarray, seconds: float) -> list[Transform]:
+    a0, _ = _start_rows()
+    rows = _on_the_cube(7, 3.0)
+    yaw1 = rows[-1][3]
     # the turn: 110 deg to the right in 3 s, driving on round the cube
     x2, y2 = _polar(a0 + 16 * DEG, 2.3)
     rows.append([6.0, x2, y2, yaw1 - 110 * DEG, 10 * DEG])
@@ -118,12 +133,7 @@ def _turn_after_init(times: np.ndarray, seconds: float) -> list[Transform]:
         azimuth = a0 + 16 * DEG + fraction * 300 * DEG
         radius = 2.6 + 0.3 * np.sin(3 * azimuth)
         rows.append([6.0 + fraction * (lap_end - 6.0), *_polar(azimuth, radius), azimuth + 60 * DEG, 10 * DEG])
-    # and back: face the cube again
-    xe, ye = _polar(a0 + 340 * DEG, 2.2)
-    yaw_e, pitch_e = _look_at_cube(xe, ye)
-    yaw_e += 2 * np.pi * round((rows[-1][3] - yaw_e) / (2 * np.pi))
-    rows.append([seconds - 3.0, xe, ye, yaw_e, pitch_e])
-    rows.append([seconds, xe, ye, yaw_e, pitch_e])
+    rows += _back_on_the_cube(rows, a0 + 340 * DEG, 2.2, seconds)  # and back: face the cube again
     return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
 
 
@@ -218,11 +228,8 @@ def _blank_wall(times: np.ndarray, seconds: float) -> list[Transform]:
 
 
 def _long_lap(times: np.ndarray, seconds: float) -> list[Transform]:
-    a0, r0 = _start_rows()
-    x1, y1 = _polar(a0 + 6 * DEG, r0)
-    yaw0, pitch0 = _look_at_cube(*START)
-    yaw1, pitch1 = _look_at_cube(x1, y1)
-    rows = [[0.0, *START, yaw0, pitch0], [3.0, x1, y1, yaw1, pitch1]]
+    a0, _ = _start_rows()
+    rows = _on_the_cube(6, 3.0)
     lap_end = seconds - 8.0
     steps = 16
     for k in range(1, steps + 1):
@@ -232,10 +239,7 @@ def _long_lap(times: np.ndarray, seconds: float) -> list[Transform]:
         heading = azimuth + (75 + 25 * np.sin(5 * fraction * np.pi)) * DEG
         tilt = (12 + 6 * np.sin(3 * fraction * np.pi)) * DEG
         rows.append([3.0 + fraction * (lap_end - 3.0), *_polar(azimuth, radius), heading, tilt])
-    xe, ye = _polar(a0 + 345 * DEG, 2.2)
-    yaw_e, pitch_e = _look_at_cube(xe, ye)
-    yaw_e += 2 * np.pi * round((rows[-1][3] - yaw_e) / (2 * np.pi))
-    rows += [[seconds - 3.0, xe, ye, yaw_e, pitch_e], [seconds, xe, ye, yaw_e, pitch_e]]
+    rows += _back_on_the_cube(rows, a0 + 345 * DEG, 2.2, seconds)
     return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
 
 
