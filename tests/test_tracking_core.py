@@ -494,8 +494,7 @@ def test_motion_model_predicts_where_tracks_land_after_a_skipped_frame():
     assert np.median(moved) > 15  # a turn: KLT would start ~20 px off (measured 22)
     assert np.median(missed[has_point]) < 0.2 * np.median(moved[has_point])  # measured 2.0 px
     assert np.median(missed[~has_point]) < 0.3 * np.median(moved[~has_point])  # measured 2.7 px
-    # nothing in view: the motion model coasts for 0.5 s, then the frame is lost and there
-    # is nothing to predict (KLT searches from the old pixels)
+    # nothing in view: coasted for 0.5 s, then lost: nothing to predict, KLT starts where it was
     statuses = [tracker.step(k * 100_000_000, Tracks.empty(), None).result.status for k in range(23, 30)]
     assert statuses[0] == "ok" and statuses[-1] == "lost", statuses
     assert tracker.predict_pixels(30 * 100_000_000, last.ids, last.pixels) is None

@@ -4,11 +4,12 @@ Per frame: KLT tracks follow the features; the target is searched where the curr
 says it should be (and over the whole image every ``target_search_every`` frames while it
 should be out of view, so that it is found again even after drift); the tracker turns
 tracks and the target pose into this frame's pose; on keyframes new corners are detected
-and ORB descriptors stored; when lost, the frame is matched against the keyframes.
+and ORB descriptors stored; when lost, or held on rays (too few map points in view), the
+frame is matched against the keyframes every ``relocalise_every`` frames.
 
-States: ``target`` (the target is in view and trusted), ``tracking`` (the map alone),
-``relocalised`` (a visible correction), no estimate with status ``initialising`` or
-``lost``.
+States: ``target`` (the target is in view and trusted), ``tracking`` (the map alone, or
+held: detail ``held: orientation from rays``), ``relocalised`` (a visible correction),
+no estimate with status ``initialising`` or ``lost``.
 """
 
 from __future__ import annotations
@@ -172,19 +173,16 @@ class TrackingProcessor:
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
         result = out.result
-        if result.estimate is None and self.tracker.initialised and self.tracker.lost:
+        # lost, or held on rays: look for the map's keyframes; a match ends either
+        searching = self.tracker.initialised and (self.tracker.holding or (
+            result.estimate is None and self.tracker.lost))
+        if searching:
             self._lost_frames += 1
             if (self._lost_frames - 1) % self.options.relocalise_every == 0:  # it costs ~4 KLT steps
                 result = self._relocalise(image, stamp_ns, result)
             want = result.estimate is not None
-        elif self.tracker.holding:
-            # held on rays: look for the map's keyframes as when lost, a match ends the hold
-            self._lost_frames += 1
-            if (self._lost_frames - 1) % self.options.relocalise_every == 0:
-                result = self._relocalise(image, stamp_ns, result)
-            want = True
         else:
-            want = out.want_features
+            want = out.want_features or self.tracker.holding  # held: fresh corners keep the rays coming
         if result.estimate is not None and not self.tracker.holding:
             self._lost_frames = 0
         if want:
