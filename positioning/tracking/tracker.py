@@ -234,7 +234,8 @@ class Tracker:
             self._hold.rebase(None, tracks.ids, xn)
             self._update_motion(pose, stamp_ns)
             self._frame_pose = pose
-            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, self._drift.covariance(self._last, pose, covariance))
+            covariance = self._drift.covariance(self._last, pose, covariance)
+            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, covariance)
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
                                  empty, status)
         self._hold.end()
