@@ -107,13 +107,14 @@ class TrackerOptions:
     # low enough that a camera walking forwards and turning keeps its map stocked (room_walk
     # was lost at 1.5 deg); bundle adjustment then refines the depths with more views
     triangulation_min_parallax_deg: float = 0.7
-    # ...and while the map runs short (a turn, driving straight at a wall), from this: a
-    # point of 0.3 deg has a depth some 2 % off where 0.7 deg gives 1 %, but no point at
-    # all loses the map (turn_after_init: 13 % of frames with a pose at 0.7 deg, 100 % with
-    # this); in plenty the points of 0.3-0.7 deg cost accuracy (paper at half resolution:
-    # 8.3 mm RMS with 0.3 always, 4.1 mm with 0.7)
+    # ...and while the map runs short (fewer than 40 map points tracked: a turn, driving
+    # straight at a wall), from this: a point of 0.3 deg has a depth some 2 % off where 0.7
+    # deg gives 1 %, but no point at all loses the map (turn_after_init at half resolution:
+    # 13 % of frames with a pose at 0.7 deg, 100 % with this). Taken more often they cost
+    # accuracy (full resolution: below 100 tracked, agile 9.9 and turn_after_init 7.2 mm;
+    # below 40, 2.7 and 2.8 mm; always, paper at half resolution 8.3 instead of 4.1 mm)
     triangulation_starving_parallax_deg: float = 0.3
-    triangulation_starving_points: int = 40  # "runs short": fewer map points tracked than this
+    triangulation_starving_points: int = 40
     triangulation_max_reproj_px: float = 2.0
     max_keyframes: int = 40  # older keyframes and the points only they saw are culled
     # target
