@@ -16,6 +16,10 @@ alignment, the longest stretch without a pose, the share of poses inside their o
 ellipsoid (NEES <= 14.16, 3 dof) and the count beyond 5 sigma, frames per second (the
 replay's own figure: PNG decoding excluded), and the child's peak RSS (VmHWM).
 
+Then each scenario **live**, as the daemon runs it (``bench.tracker._live``: frames on the
+camera's clock into the newest-frame slot, bundle adjustment in its thread), new tracker
+only: frames processed and skipped, and the error of what was published.
+
 Environment: ``CUBELOC_BENCH_SEQUENCES=DIR`` keeps the renders (an hour's worth at full
 resolution, agile's exposure-long blur the most) for later runs; ``CUBELOC_BENCH_SCENARIOS``
 a comma-separated subset; ``CUBELOC_BENCH_BASELINE=DIR`` an existing checkout of the
@@ -35,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import machine_line, markdown_table
+from bench.tracker import _live, _options
 
 TITLE = "Tracker through robot motions: new and previous side by side"
 BASELINE_COMMIT = "9580d93"
@@ -138,9 +143,22 @@ def run() -> str:
             if previous is not None and not os.environ.get("CUBELOC_BENCH_BASELINE"):
                 subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(previous)],
                                capture_output=True)
+        live_rows = []
+        for name in chosen:
+            live = _live(root / name, _options())
+            posed = sum(int(n) for n in re.findall(r"(?:target|tracking|relocalised) (\d+)", live["states"]))
+            live_rows.append([name, f"{live['camera_fps']:.0f}", f"{live['processed']} of {live['frames']}",
+                              f"{100 * (1 - live['processed'] / live['frames']):.1f} %",
+                              f"{100 * posed / live['frames']:.1f} %", f"{live['ate_mm']:.2f}",
+                              f"{live['max_mm']:.1f}", f"{live['busy_ms']:.1f}"])
+            print("  live " + " | ".join(live_rows[-1]), flush=True)
     table = markdown_table(["scenario", "tracker", "coverage", "RMS mm", "max mm", "longest gap (frames)",
                             "inside 3 sigma (beyond 5)", "fps", "peak RSS MB"], rows)
+    live_table = markdown_table(["scenario", "camera fps", "processed", "skipped", "frames with a pose",
+                                 "RMS mm", "max mm", "median ms per frame"], live_rows)
     return (f"{machine_line()}. `cubeloc track` per scenario (seed 1, default length, 1280x1024), bundle "
             f"adjustment in the frame loop; **previous** = commit {BASELINE_COMMIT}. Errors are positions "
             "against the ground truth with no alignment; fps is the replay's own (PNG decoding excluded), on "
-            "a shared machine.\n\n" + table)
+            "a shared machine.\n\n" + table + "\nLive, as the daemon runs it (new tracker; frames on the camera's "
+            "clock into the newest-frame slot, bundle adjustment in its worker thread, images decoded "
+            "beforehand):\n\n" + live_table)
