@@ -6,19 +6,19 @@ the cube, looking at it, and drifting a little sideways for the parallax that
 initialisation needs. The camera is 1 m above the floor with no roll, as on a robot.
 
 =====================  =================================================================
-``turn_after_init``    3 s on the cube, then a 110 deg turn away (peak ~55 deg/s) while
-                       driving at ~0.2 m/s, a lap of the room looking ahead (cube out of
+``turn_after_init``    3 s on the cube, then a 110 deg turn away (peak 44 deg/s) while
+                       driving at 0.12-0.3 m/s, a lap of the room looking ahead (cube out of
                        view for ~70 s), and a turn back to face it; >= 75 s, 10 fps
 ``spin_in_place``      a robot turning on the spot with the camera 0.2 m ahead of the
                        axis: 2 turns at 45 deg/s right after initialisation; 10 fps
 ``spin_in_place_fast`` the same at 90 deg/s, 30 fps
 ``spin_on_axis``       the camera on the axis (pure rotation, no parallax): 45 deg/s
-``agile``              yaw swings of +-50 deg (63 deg/s peak) that take the cube in and
+``agile``              yaw swings of +-50 deg (63 deg/s, ~80 as they start) that take the cube in and
                        out of view while drifting along an arc; 4 ms exposure (motion
                        blur up to ~8 px, integrated over the exposure) and auto-exposure
                        steps of gain 0.7-1.35 every 2-4 s; 30 fps
 ``passers_by``         a slow drive past the cube and away while person-sized textured
-                       panels walk across the view 0.5-2 m from the camera, one over the
+                       slabs walk across the view 0.6-1.8 m from the camera, one over the
                        cube during initialisation; 10 fps
 ``blank_wall``         a drive along the room, a turn to face a freshly painted wall from
                        1.2 m (~3 s of view with a few scuffs for all texture), and back;
@@ -28,7 +28,7 @@ initialisation needs. The camera is 1 m above the floor with no roll, as on a ro
 =====================  =================================================================
 
 The effects (``Effects``) are seeded by the scenario alone, so a sequence is the same
-every time: ``make_effects(name, poses)``.
+every time: ``scenario_effects(name, trajectory)``.
 """
 
 from __future__ import annotations
