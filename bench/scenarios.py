@@ -111,8 +111,11 @@ def _score(sequence: Path, out: Path, poses: bool):
             cov = None if doc["covariance"] is None else np.array(doc["covariance"]).reshape(6, 6)
             by_stamp[doc["stamp_ns"]] = (StampedPose(doc["stamp_ns"], pose), cov)
     else:
-        for p in read_tum(out):
-            by_stamp[min(stamps, key=lambda s, t=p.stamp_ns: abs(s - t))] = (p, None)
+        frame_stamps = np.array(stamps)
+        for p in read_tum(out):  # TUM stamps are seconds: back to the nearest frame's
+            i = int(np.clip(np.searchsorted(frame_stamps, p.stamp_ns), 1, len(stamps) - 1))
+            nearest = i if abs(stamps[i] - p.stamp_ns) < abs(stamps[i - 1] - p.stamp_ns) else i - 1
+            by_stamp[stamps[nearest]] = (p, None)
     return score_run(truth, [by_stamp.get(s) for s in stamps])
 
 

@@ -75,22 +75,25 @@ def project(T_camera_world: Transform, points_world: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:]
 
 
-def _blocks(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray, xn: np.ndarray, fx: float):
-    """Pixel residuals (N, 2), their Jacobians (N, 2, 6) in (d_omega, d_t) of
-    ``R <- exp(d_omega) R, t <- t + d_t`` (camera from world), the projection Jacobians
-    (N, 2, 3) and depths (N,)."""
-    rotated = points @ rotation.T
-    camera = rotated + translation
+def _projection(camera: np.ndarray, fx: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised projections (N, 2) of camera-frame points (N, 3), the Jacobians of their
+    pixels (N, 2, 3) and the depths (N,) (clamped away from zero for the division)."""
     z = camera[:, 2]
     safe = np.where(z > 1e-6, z, 1e-6)
-    proj = np.zeros((len(points), 2, 3))
-    proj[:, 0, 0] = proj[:, 1, 1] = 1.0 / safe
-    proj[:, 0, 2] = -camera[:, 0] / safe**2
-    proj[:, 1, 2] = -camera[:, 1] / safe**2
-    proj *= fx
-    residual = (camera[:, :2] / safe[:, None] - xn) * fx
+    proj = np.zeros((len(camera), 2, 3))
+    proj[:, 0, 0] = proj[:, 1, 1] = fx / safe
+    proj[:, 0, 2] = -fx * camera[:, 0] / safe**2
+    proj[:, 1, 2] = -fx * camera[:, 1] / safe**2
+    return camera[:, :2] / safe[:, None], proj, z
+
+
+def _blocks(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray, xn: np.ndarray, fx: float):
+    """Pixel residuals (N, 2), their Jacobians (N, 2, 6) in (d_omega, d_t) of
+    ``R <- exp(d_omega) R, t <- t + d_t`` (camera from world) and depths (N,)."""
+    rotated = points @ rotation.T
+    projected, proj, z = _projection(rotated + translation, fx)
     jac = np.concatenate([proj @ -_skew(rotated), proj], axis=2)
-    return residual, jac, proj, z
+    return (projected - xn) * fx, jac, z
 
 
 def _ray_blocks(R: np.ndarray, t: np.ndarray, rays: Rays, fx: float, sigma_px: float):
@@ -104,14 +107,7 @@ def _ray_blocks(R: np.ndarray, t: np.ndarray, rays: Rays, fx: float, sigma_px: f
     about the position is what the prior depth assumes, and that is no measurement."""
     d_cam = rays.directions @ R.T
     w = (rays.centres @ R.T) + t  # R C + t = R (C - c)
-    at_prior = d_cam + rays.rho0 * w
-    z = at_prior[:, 2]
-    safe = np.where(z > 1e-6, z, 1e-6)
-    predicted = at_prior[:, :2] / safe[:, None]
-    proj = np.zeros((len(z), 2, 3))
-    proj[:, 0, 0] = proj[:, 1, 1] = fx / safe
-    proj[:, 0, 2] = -fx * at_prior[:, 0] / safe**2
-    proj[:, 1, 2] = -fx * at_prior[:, 1] / safe**2
+    predicted, proj, z = _projection(d_cam + rays.rho0 * w, fx)
     residual = (predicted - rays.xn) * fx
     v = np.einsum("kij,kj->ki", proj, w) * rays.rho0  # px moved by one sigma of rho
     norm2 = np.sum(v * v, axis=1)
@@ -125,10 +121,11 @@ def _ray_blocks(R: np.ndarray, t: np.ndarray, rays: Rays, fx: float, sigma_px: f
 
 def fit_pose(start: Transform, points_world: np.ndarray, points_xn: np.ndarray, rays: Rays | None, *,
              fx: float, sigma_px: float, prior_position: tuple[np.ndarray, float] | None = None,
-             iterations: int = 8) -> PoseFit | None:
+             iterations: int = 9) -> PoseFit | None:
     """The pose (T_world_camera) that best explains the map points' and rays'
-    observations, from ``start``; None when the normal matrix is singular (nothing holds
-    the pose: no points, rays all in one direction and no prior)."""
+    observations, from ``start`` after ``iterations`` Gauss-Newton steps (0: the
+    covariance of ``start`` itself); None when the normal matrix is singular (nothing
+    holds the pose: no points, rays all in one direction and no prior)."""
     R = start.rotation.T.copy()  # camera from world
     t = -R @ start.translation
     points_world = np.asarray(points_world, np.float64).reshape(-1, 3)
@@ -137,11 +134,10 @@ def fit_pose(start: Transform, points_world: np.ndarray, points_xn: np.ndarray, 
     k = 0 if rays is None else len(rays.xn)
     p_in = np.ones(m, bool)
     r_in = np.ones(k, bool)
-    normal = None
-    for it in range(iterations + 2):
+    for it in range(iterations + 1):
         rows, jacs = [], []
         # map points: isotropic pixel noise
-        res_p, jac_p, _, z_p = _blocks(R, t, points_world, points_xn, fx)
+        res_p, jac_p, z_p = _blocks(R, t, points_world, points_xn, fx)
         res_p, jac_p = res_p / sigma_px, jac_p / sigma_px
         if k:
             res_r, jac_r, z_r = _ray_blocks(R, t, rays, fx, sigma_px)
@@ -169,13 +165,13 @@ def fit_pose(start: Transform, points_world: np.ndarray, points_xn: np.ndarray, 
         jac = np.concatenate(jacs)
         res = np.concatenate(rows)
         normal = jac.T @ jac
-        if it == iterations + 1 or np.linalg.cond(normal) > 1e12:
+        if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
+            return None
+        if it == iterations:
             break
         step = np.linalg.solve(normal, -jac.T @ res)
         R = cv2.Rodrigues(step[:3])[0] @ R
         t = t + step[3:]
-    if normal is None or not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
-        return None
     cov_solver = np.linalg.inv(normal)
     # (d_omega, d_t) -> (camera centre, rotation about world axes)
     g = np.zeros((6, 6))
@@ -184,8 +180,8 @@ def fit_pose(start: Transform, points_world: np.ndarray, points_xn: np.ndarray, 
     g[3:, :3] = -R.T
     cov = g @ cov_solver @ g.T
     pose = Transform(R.T, -R.T @ t)
-    res_p, _, _, _ = _blocks(R, t, points_world, points_xn, fx)
-    rms = float(np.sqrt(np.mean(np.sum(res_p[p_in] ** 2, axis=1)))) if p_in.any() else 0.0
+    # the last evaluation was at this pose (no step after it)
+    rms = float(sigma_px * np.sqrt(np.mean(np.sum(res_p[p_in] ** 2, axis=1)))) if p_in.any() else 0.0
     if not (np.all(np.isfinite(pose.matrix())) and np.all(np.isfinite(cov))):
         return None
     return PoseFit(pose, (cov + cov.T) / 2.0, p_in, r_in, rms)

@@ -231,10 +231,10 @@ class Tracker:
             # the target hidden (a passer-by) before the map exists: held on the rays of
             # tracks born on target poses, the map still waits for the target
             pose, covariance = held
+            covariance = self._drift.covariance(self._last, pose, covariance)  # the path from the last pose
             self._hold.rebase(None, tracks.ids, xn)
             self._update_motion(pose, stamp_ns)
             self._frame_pose = pose
-            covariance = self._drift.covariance(self._last, pose, covariance)
             estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, covariance)
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
                                  empty, status)
