@@ -247,8 +247,9 @@ class SyntheticCamera(CameraBase):
             return ()
         ends = [self._pose_at(i, -exposure / 2), self._pose_at(i, exposure / 2)]
         fx = float(self.calibration.camera_matrix[0, 0])
+        # the image motion of a point 1 m away: the turn plus the translation over 1 m
         motion_px = fx * (ends[0].rotation_angle_to(ends[1])
-                          + np.linalg.norm(ends[1].translation - ends[0].translation) / 1.0)
+                          + np.linalg.norm(ends[1].translation - ends[0].translation))
         count = int(np.clip(np.ceil(motion_px / 0.7), 1, 12))
         if count == 1:
             return ()

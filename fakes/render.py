@@ -412,11 +412,8 @@ def render_view(
     quads = list(target_quads(target, hidden_tags=tuple(hidden_tags), glare_tag=glare_tag,
                               glare_strength=glare_strength))
     objects = [tuple(range(len(quads)))]
-    for box in room_obj.boxes if room_obj is not None else ():
-        start = len(quads)
-        quads.extend(box_quads(box, room_obj.texel_m))
-        objects.append(tuple(range(start, len(quads))))
-    for group in extra_objects:
+    boxes = [box_quads(box, room_obj.texel_m) for box in room_obj.boxes] if room_obj is not None else []
+    for group in [*boxes, *extra_objects]:  # one region each: the room's boxes, passers-by, panels
         start = len(quads)
         quads.extend(group)
         objects.append(tuple(range(start, len(quads))))
