@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
 import re
 import statistics
+import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "docs" / "benchmarks.md"
 HEADER = (
     "# Benchmarks\n\n"
     "Written by `make bench` (each section by its own module in `bench/`). Medians over "
@@ -61,3 +64,21 @@ def update_section(name: str, title: str, body: str) -> None:
     pattern = re.compile(rf"<!-- bench:{re.escape(name)} -->.*?<!-- /bench:{re.escape(name)} -->\n", re.S)
     text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block
     RESULTS.write_text(text)
+
+
+@contextlib.contextmanager
+def previous_tree(commit: str, work: Path, given: str | None = None) -> Iterator[Path | None]:
+    """A checkout of ``commit`` (``git worktree`` under ``work``, removed afterwards) to run
+    the previous code side by side with this tree; ``given``, an existing checkout, is used
+    as it is. None when git cannot make one (a tarball without history)."""
+    if given:
+        yield Path(given)
+        return
+    tree = work / "previous"
+    done = subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", str(tree), commit],
+                          capture_output=True, text=True)
+    try:
+        yield tree if done.returncode == 0 else None
+    finally:
+        if done.returncode == 0:
+            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)

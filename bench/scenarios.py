@@ -38,14 +38,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import machine_line, markdown_table
+from bench.common import REPO, machine_line, markdown_table, previous_tree
 from bench.tracker import _live, _options
 
 TITLE = "Tracker through robot motions: new and previous side by side"
 BASELINE_COMMIT = "9580d93"
 SCENARIOS = ("turn_after_init", "spin_in_place", "spin_in_place_fast", "spin_on_axis", "agile", "passers_by",
              "blank_wall", "long_lap", "paper", "orbit", "room_walk")
-REPO = Path(__file__).resolve().parents[1]
 # run cubeloc's CLI, then report the process's peak resident memory on stderr
 _WRAPPER = (
     "import atexit, runpy, sys\n"
@@ -66,16 +65,6 @@ def _render(root: Path, name: str) -> Path:
     if not (out / "groundtruth.tum").is_file():
         write_synthetic_sequence(out, name, seed=1)
     return out
-
-
-def _baseline_tree(work: Path) -> Path | None:
-    given = os.environ.get("CUBELOC_BENCH_BASELINE")
-    if given:
-        return Path(given)
-    tree = work / "previous"
-    done = subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", str(tree), BASELINE_COMMIT],
-                          capture_output=True, text=True)
-    return tree if done.returncode == 0 else None
 
 
 def _track(tree: Path, sequence: Path, out: Path, poses: bool) -> dict:
@@ -126,9 +115,8 @@ def run() -> str:
         work = Path(tmp)
         root = Path(keep) if keep else work / "sequences"
         root.mkdir(parents=True, exist_ok=True)
-        previous = _baseline_tree(work)
         rows = []
-        try:
+        with previous_tree(BASELINE_COMMIT, work, os.environ.get("CUBELOC_BENCH_BASELINE")) as previous:
             for name in chosen:
                 sequence = _render(root, name)
                 for label, tree, poses in (("new", REPO, True), ("previous", previous, False)):
@@ -142,10 +130,6 @@ def run() -> str:
                                  f"{100 * s.consistent:.1f} % ({s.beyond_5_sigma})" if poses else "-",
                                  f"{figures['fps']:.1f}", f"{figures['peak_mb']:.0f}"])
                     print("  " + " | ".join(rows[-1]), flush=True)
-        finally:
-            if previous is not None and not os.environ.get("CUBELOC_BENCH_BASELINE"):
-                subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(previous)],
-                               capture_output=True)
         live_rows = []
         for name in chosen:
             live = _live(root / name, _options())

@@ -29,6 +29,7 @@ import numpy as np
 import structlog
 
 from cubeloc.errors import CubelocError
+from daemon.cameras import make_camera
 from daemon.frame_queue import CapturedFrame, LatestFrameSlot
 from daemon.messages import CameraStatus
 from drivers.base import (
@@ -39,7 +40,6 @@ from drivers.base import (
     Frame,
     FrameTimeout,
 )
-from drivers.registry import make_camera
 
 log = structlog.get_logger()
 

@@ -35,7 +35,7 @@ class Section(BaseModel):
 
 
 class CameraConfig(Section):
-    source: str = Field("aravis", description="BACKEND[:ARGUMENT], see drivers.registry")
+    source: str = Field("aravis", description="BACKEND[:ARGUMENT], see daemon.cameras")
     width: int = Field(1280, gt=0, le=16384)
     height: int = Field(1024, gt=0, le=16384)
     offset_x: int = Field(0, ge=0)

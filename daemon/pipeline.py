@@ -1,7 +1,8 @@
 """The processing stage: newest frame -> ``FrameProcessor`` -> ``pose`` publication.
 
 The loop knows positioning only through ``positioning.estimator.FrameProcessor``: the
-single-frame target pose today, the tracker (which wraps it) later, without a change here.
+tracker (``mode = "tracker"``, the default) or the single-frame target pose (``"target"``);
+both see the target through the same ``positioning.observer.TargetObserver``.
 A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/1``;
 any other frame publishes nothing, and its status word shows on ``status``.
 

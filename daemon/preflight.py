@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 from calib.camera_info import CameraCalibration, read_camera_info
 from cubeloc.errors import ConfigError
+from daemon.cameras import make_camera, parse_source
 from daemon.config import Config
 from daemon.zenoh_session import build_zenoh_config
-from drivers.registry import make_camera, parse_source
 from positioning.estimator import FrameProcessor
 from positioning.target import Target, load_target
 

@@ -16,6 +16,7 @@ from collections.abc import Callable
 import structlog
 
 from cubeloc import __version__
+from daemon.cameras import make_camera
 from daemon.capture import CaptureThread
 from daemon.frame_queue import LatestFrameSlot
 from daemon.loop_stats import LoopStats
@@ -26,7 +27,6 @@ from daemon.publisher import ZenohPublisher
 from daemon.sdnotify import SystemdNotifier
 from daemon.zenoh_session import ZenohUnreachable, open_session
 from drivers.base import Camera, CameraSettings
-from drivers.registry import make_camera
 from positioning.estimator import FrameProcessor
 
 log = structlog.get_logger()

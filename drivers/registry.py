@@ -7,11 +7,12 @@ A camera source is a string ``BACKEND[:ARGUMENT]``:
 ``aravis:ID``             an Aravis device id, serial number or IP address
 ``replay:DIR``            a recorded sequence in the EuRoC layout (as fast as possible)
 ``replay:DIR@pace``       the same, at the recorded pace
-``synthetic:TRAJECTORY``  the synthetic camera (``fakes``) along a named trajectory
 ========================  ======================================================
 
-The pipeline imports this module, never ``gi``: the Aravis backend (and so PyGObject) is
-imported only when an ``aravis`` source is opened.
+Other backends are registered by the layer that owns them: ``daemon/cameras.py`` adds
+``synthetic:TRAJECTORY`` (the synthetic camera of ``fakes``), so drivers/ never reaches
+up into fakes/. The pipeline imports this module, never ``gi``: the Aravis backend (and
+so PyGObject) is imported only when an ``aravis`` source is opened.
 """
 
 from __future__ import annotations
@@ -25,8 +26,15 @@ from drivers.base import Camera, CameraNotFound, CameraSettings
 BACKENDS: dict[str, str] = {
     "aravis": "drivers.aravis_camera:open_aravis_source",
     "replay": "drivers.replay:open_replay_source",
-    "synthetic": "fakes.camera:open_synthetic_source",
 }
+
+
+def register_backend(name: str, factory: str) -> None:
+    """Offer ``name:ARGUMENT`` sources, built by ``factory`` ("module:function", imported
+    when such a source is first made)."""
+    if ":" in name or not name:
+        raise ValueError(f"a backend name is one word, got {name!r}")
+    BACKENDS[name] = factory
 
 
 def parse_source(source: str) -> tuple[str, str]:

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from calib.camera_info import CameraCalibration
+from positioning.camera_model import distort, undistort
 from positioning.target import KNOWN_FAMILIES
 
 # Library corner index for each of our TL, TR, BR, BL (see the module docstring).
@@ -231,11 +233,11 @@ def _intersect(line_a, line_b) -> np.ndarray | None:
     return pa + s * da
 
 
-def refine_corners(image: np.ndarray, detection: TagDetection, camera_matrix: np.ndarray | None = None,
-                   distortion: np.ndarray | None = None, cells: int = 8, passes: int = 1) -> TagDetection | None:
+def refine_corners(image: np.ndarray, detection: TagDetection, calibration: CameraCalibration | None = None,
+                   cells: int = 8, passes: int = 1) -> TagDetection | None:
     """The detection with corners from straight lines fitted to its four outer edges.
 
-    With ``camera_matrix`` (and ``distortion``) the lines are fitted in undistorted
+    With ``calibration`` the lines are fitted in undistorted
     coordinates, where the edges really are straight. ``cells`` is the number of cells
     across the tag including its black border (8 for tag36h11): profiles stay within
     0.4 of a cell on either side. Returns the detection unchanged when the tag is too
@@ -263,8 +265,8 @@ def refine_corners(image: np.ndarray, detection: TagDetection, camera_matrix: np
         if min(counts) < MIN_EDGE_SAMPLES:
             return None
         points = np.concatenate(edges) + shift
-        if camera_matrix is not None:
-            points = _undistort(points, camera_matrix, distortion)
+        if calibration is not None:
+            points = undistort(points, calibration)
         lines = []
         for chunk in np.split(points, np.cumsum(counts)[:-1]):
             line = _fit_line(chunk)
@@ -278,22 +280,9 @@ def refine_corners(image: np.ndarray, detection: TagDetection, camera_matrix: np
                 return None
             new.append(point)
         new = np.array(new)
-        if camera_matrix is not None:
-            new = _distort(new, camera_matrix, distortion)
+        if calibration is not None:
+            new = distort(new, calibration)
         if np.abs(new - detection.corners).max() > max(2.0, 0.05 * size):
             return None  # the edges are not where the library put them: a bad quad
         corners = new
     return TagDetection(detection.tag_id, corners, detection.decision_margin, detection.hamming)
-
-
-def _undistort(pixels: np.ndarray, camera_matrix: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
-    identity = np.eye(3)
-    return cv2.undistortPoints(pixels.reshape(-1, 1, 2), camera_matrix, distortion, None, identity, identity,
-                               criteria).reshape(-1, 2)
-
-
-def _distort(normalised: np.ndarray, camera_matrix: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:
-    rays = np.column_stack([normalised, np.ones(len(normalised))])
-    pixels, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), camera_matrix, distortion)
-    return pixels.reshape(-1, 2)

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
+from positioning.camera_model import project_pose, project_with_jacobian
 from positioning.geometry import Transform
 from positioning.tag_bits import grid_to_world, tag_edges
 from positioning.target import Target
@@ -130,50 +131,6 @@ class EdgeFit:
         g[3:, :3] = -self.rotation.T
         cov = g @ cov_local @ g.T
         return (cov + cov.T) / 2.0
-
-
-def _distort(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV's plumb_bob / rational_polynomial distortion of normalised coordinates."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = d
-    r2 = x * x + y * y
-    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
-
-
-def project_with_jacobian(points_camera: np.ndarray, calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (N, 2) of camera-frame points (N, 3), and d(pixel)/d(point) (N, 2, 3).
-
-    OpenCV's camera model (distortion applied to the model, as ``cv2.projectPoints``)
-    with up to 8 coefficients; the distortion's 2x2 Jacobian by central differences."""
-    d = np.zeros(8)
-    coefficients = np.asarray(calibration.distortion, np.float64).ravel()
-    if len(coefficients) > 8 and np.any(coefficients[8:] != 0):
-        raise ValueError("edge alignment supports plumb_bob and rational_polynomial distortion only")
-    d[: min(len(coefficients), 8)] = coefficients[:8]
-    k = calibration.camera_matrix
-    z = points_camera[:, 2]
-    x, y = points_camera[:, 0] / z, points_camera[:, 1] / z
-    xd, yd = _distort(x, y, d)
-    h = 1e-6
-    ax, ay = _distort(x + h, y, d)
-    bx, by = _distort(x - h, y, d)
-    cx, cy = _distort(x, y + h, d)
-    ex, ey = _distort(x, y - h, d)
-    # d(distorted)/d(x, y), then the camera matrix (fx, skew, fy) on its rows
-    d00, d10 = (ax - bx) / (2 * h), (ay - by) / (2 * h)
-    d01, d11 = (cx - ex) / (2 * h), (cy - ey) / (2 * h)
-    m00, m01 = k[0, 0] * d00 + k[0, 1] * d10, k[0, 0] * d01 + k[0, 1] * d11
-    m10, m11 = k[1, 1] * d10, k[1, 1] * d11
-    # times d(x, y)/d(X, Y, Z) = [[1/z, 0, -x/z], [0, 1/z, -y/z]]
-    inv_z = 1.0 / z
-    jacobian = np.empty((len(z), 2, 3))
-    jacobian[:, 0, 0], jacobian[:, 0, 1] = m00 * inv_z, m01 * inv_z
-    jacobian[:, 0, 2] = -(m00 * x + m01 * y) * inv_z
-    jacobian[:, 1, 0], jacobian[:, 1, 1] = m10 * inv_z, m11 * inv_z
-    jacobian[:, 1, 2] = -(m10 * x + m11 * y) * inv_z
-    pixels = np.column_stack([k[0, 0] * xd + k[0, 1] * yd + k[0, 2], k[1, 1] * yd + k[1, 2]])
-    return pixels, jacobian
 
 
 def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translation: np.ndarray,
@@ -298,7 +255,10 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
                          calibration: CameraCalibration, max_shift_m: float = 0.05,
                          iterations: int | None = None) -> TargetPose:
     """``pose`` aligned to every cell edge of its tags (or unchanged when that fails or
-    moves the camera further than ``max_shift_m``, which a right start never needs)."""
+    moves the camera further than ``max_shift_m``, which a right start never needs).
+
+    The aligned pose's ``reproj_rms_px`` is the RMS of the edge profiles' offsets (pixels
+    along the edges' normals) it was fitted to; ``residuals_px`` stay the corners'."""
     if pose.rvec is None or pose.tvec is None:
         return pose
     try:
@@ -311,11 +271,10 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     T_world_camera = Transform.from_rvec_tvec(rvec, tvec).inverse()
     if float(np.linalg.norm(T_world_camera.translation - pose.T_world_camera.translation)) > max_shift_m:
         return pose
-    k, d = calibration.camera_matrix, calibration.distortion
     corners = pose.points_world
-    observed = pose.residuals_px + cv2.projectPoints(corners, pose.rvec, pose.tvec, k, d)[0].reshape(-1, 2)
-    residuals = observed - cv2.projectPoints(corners, rvec, tvec, k, d)[0].reshape(-1, 2)
+    observed = pose.residuals_px + project_pose(corners, pose.rvec, pose.tvec, calibration)
+    residuals = observed - project_pose(corners, rvec, tvec, calibration)
     return dataclasses.replace(
         pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=fit.covariance(),
-        residuals_px=residuals, reproj_rms_px=float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))),
+        residuals_px=residuals, reproj_rms_px=float(np.sqrt(np.mean(fit.residuals_px**2))),
     )

@@ -2,7 +2,9 @@
 
 The daemon hands every frame to a ``FrameProcessor`` and publishes what comes back. The
 single-frame target pose is one processor; the tracker (initialisation on the target,
-then visual tracking) is another that wraps it. Both take arrays and return frozen
+then visual tracking) is another. Both see the target through one
+``positioning.observer.TargetObserver`` (search, edge-aligned pose, checks), take arrays
+and return frozen
 dataclasses: no cameras, Zenoh, logging configuration or printing in here.
 """
 

@@ -29,6 +29,7 @@ from scipy.sparse import lil_matrix
 
 from calib.camera_info import CameraCalibration
 from cubeloc.errors import InputFileError
+from positioning.camera_model import project_pose
 from positioning.detection import FAMILY_CELLS, TagDetection, TagDetector, refine_corners
 from positioning.target import Tag, Target, validate_target
 from positioning.target_pose import PoseOptions, estimate_target_pose, unique_target_detections
@@ -112,7 +113,7 @@ def observe(images: Iterable[tuple[str, np.ndarray]], target: Target, calibratio
         found = unique_target_detections(detector.detect(image), target)
         refined = []
         for detection in found:
-            better = refine_corners(image, detection, calibration.camera_matrix, calibration.distortion, cells)
+            better = refine_corners(image, detection, calibration, cells)
             if better is not None:
                 refined.append(better)
         if len(refined) < 2:
@@ -360,7 +361,6 @@ class _Problem:
         return local @ _rotation(p[:3]).T + centre + p[3:]
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        k, d = self.calibration.camera_matrix, self.calibration.distortion
         corners = {tag_id: self.tag_corners(x, tag_id) for tag_id in (self.first, *self.free)}
         out = np.zeros((len(self.obs_view), 4, 2))
         for v in range(len(self.views)):
@@ -369,8 +369,7 @@ class _Problem:
                 continue
             pose = x[self.offset + 6 * v: self.offset + 6 * v + 6]
             points = np.concatenate([corners[self.obs_tag[r]] for r in rows])
-            projected, _ = cv2.projectPoints(points, pose[:3], pose[3:], k, d)
-            out[rows] = projected.reshape(-1, 4, 2) - self.pixels[rows]
+            out[rows] = project_pose(points, pose[:3], pose[3:], self.calibration).reshape(-1, 4, 2) - self.pixels[rows]
         return out.ravel()
 
     def sparsity(self, tags_free: bool):

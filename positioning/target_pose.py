@@ -21,6 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from calib.camera_info import CameraCalibration
+from positioning.camera_model import project_pose
 from positioning.detection import TagDetection
 from positioning.geometry import Transform
 from positioning.target import Target
@@ -145,8 +146,7 @@ def unique_target_detections(detections: list[TagDetection], target: Target) -> 
 
 
 def _project(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
-    projected, _ = cv2.projectPoints(points_world, rvec, tvec, calibration.camera_matrix, calibration.distortion)
-    return projected.reshape(-1, 2)
+    return project_pose(points_world, rvec, tvec, calibration)
 
 
 def _refine(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
@@ -181,8 +181,8 @@ def _covariance(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, re
     Corner noise is estimated from the residuals (with a floor); the covariance of the
     solver's (rvec, tvec) is then carried to (position, world rotation) numerically.
     """
-    _, jacobian = cv2.projectPoints(points_world, rvec, tvec, calibration.camera_matrix, calibration.distortion)
-    return covariance_from_jacobian(jacobian[:, :6], residuals, rvec, tvec)
+    _, jacobian = project_pose(points_world, rvec, tvec, calibration, jacobian=True)
+    return covariance_from_jacobian(jacobian, residuals, rvec, tvec)
 
 
 def pose_covariance(pose: TargetPose, calibration: CameraCalibration) -> np.ndarray:

@@ -12,11 +12,11 @@ from helpers import half_resolution
 from test_daemon_loop import free_port, listeners  # noqa: F401 (a fixture)
 
 from calib.camera_info import write_camera_info
+from daemon.cameras import make_camera
 from daemon.config import Config
 from daemon.preflight import prepare
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
-from drivers.registry import make_camera
 from positioning.target import default_cube_yaml
 
 SECONDS, FPS = 9.0, 5.0  # the paper's path: the cube leaves the view after ~5 s

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from calib.camera_info import paper_camera, read_camera_info
+from daemon.cameras import make_camera
 from drivers.base import Camera, CameraNotFound, CameraSettings, EndOfStream, FeatureNotSupported
-from drivers.registry import make_camera
 from drivers.sequence import read_mono_png, read_sequence_index
 from fakes import TRAJECTORIES, SyntheticCamera, default_room, make_trajectory
 from fakes.scenarios import TIMING as SCENARIO_TIMING

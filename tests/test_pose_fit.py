@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from positioning.camera_model import project_normalised
 from positioning.geometry import Transform
-from positioning.tracking.pose_fit import Rays, fit_pose, project
+from positioning.tracking.pose_fit import Rays, fit_pose
 
 FX = 1000.0
 SIGMA_PX = 0.2
@@ -16,10 +17,10 @@ def scene(seed: int, count: int = 200) -> np.ndarray:
 
 
 def rays_from(birth: Transform, points: np.ndarray, now: Transform, rng, rho0: float = 1 / 4.0) -> Rays:
-    xb = project(birth.inverse(), points)
+    xb = project_normalised(birth.inverse(), points)[0]
     d = np.column_stack([xb, np.ones(len(points))]) @ birth.rotation.T
     d /= np.linalg.norm(d, axis=1)[:, None]
-    xn = project(now.inverse(), points) + rng.normal(0, SIGMA_PX / FX, (len(points), 2))
+    xn = project_normalised(now.inverse(), points)[0] + rng.normal(0, SIGMA_PX / FX, (len(points), 2))
     return Rays(np.tile(birth.translation, (len(points), 1)), d, xn, rho0)
 
 
@@ -43,7 +44,7 @@ def test_map_points_give_a_consistent_covariance():
     within the chi-square 99.7 % bound (6 dof: 20.06)."""
     points = scene(2, 60)
     truth = Transform.from_rvec_tvec(np.array([0.02, -0.03, 0.01]), np.array([0.1, -0.05, 0.2]))
-    clean = project(truth.inverse(), points)
+    clean = project_normalised(truth.inverse(), points)[0]
     nees = []
     for k in range(200):
         rng = np.random.default_rng(100 + k)
@@ -69,7 +70,7 @@ def test_rays_on_a_mover_are_cut_and_the_orientation_holds():
     moved = rays.xn.copy()
     moved[:40] += np.array([15.0 / FX, 0.0])
     rays = Rays(rays.centres, rays.directions, moved, rays.rho0)
-    fit = fit_pose(Transform.identity(), points[150:], project(truth.inverse(), points[150:]), rays, fx=FX,
+    fit = fit_pose(Transform.identity(), points[150:], project_normalised(truth.inverse(), points[150:])[0], rays, fx=FX,
                    sigma_px=SIGMA_PX, prior_position=(np.zeros(3), 0.05))
     assert not fit.ray_inliers[:40].any() and fit.ray_inliers[40:].mean() > 0.9
     assert np.degrees(fit.T_world_camera.rotation_angle_to(truth)) < 0.02

@@ -13,11 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
+from daemon.cameras import make_camera
 from drivers.aravis_camera import AravisCamera
 from drivers.base import CameraSettings, EndOfStream, FrameTimeout
 from drivers.fake_gige import GvFake
 from drivers.recorder import record_sequence
-from drivers.registry import make_camera
 from drivers.replay import ReplayCamera, parse_replay_argument
 from drivers.sequence import SequenceWriter, camera_dir, read_mono_png, read_sequence_index
 

@@ -9,8 +9,9 @@ from calib.camera_info import CameraCalibration, paper_camera
 from fakes import render_view
 from fakes.optics import project
 from fakes.scene import tag_bits
+from positioning.camera_model import project_with_jacobian
 from positioning.detection import TagDetector, refine_corners
-from positioning.edge_alignment import align_to_edges, project_with_jacobian, refine_pose_on_edges
+from positioning.edge_alignment import align_to_edges, refine_pose_on_edges
 from positioning.geometry import Transform
 from positioning.range_map import camera_on_sphere
 from positioning.tag_bits import grid_to_world, tag_cells, tag_edges
@@ -78,7 +79,7 @@ def test_renderer_and_detection_agree_on_corners_to_0_02_px():
         truth = camera_on_sphere(azimuth, 30.0, 2.0)
         image = render_view(truth, noise_sigma=0.0)
         for detection in detector.detect(image):
-            refined = refine_corners(image, detection, CAMERA.camera_matrix, CAMERA.distortion)
+            refined = refine_corners(image, detection, CAMERA)
             true = project(truth.inverse().apply(CUBE.tag(detection.tag_id).corners), CAMERA)
             offsets.append(refined.corners - true)
     offsets = np.concatenate(offsets)
@@ -116,7 +117,7 @@ def test_alignment_converges_from_a_pose_a_few_pixels_off():
 def test_a_glare_spot_on_one_face_does_not_pull_the_pose():
     truth = camera_on_sphere(50.0, 32.0, 2.0)
     image = render_view(truth, seed=4, glare_tag=1, glare_strength=1.5)
-    detections = [refine_corners(image, d, CAMERA.camera_matrix, CAMERA.distortion) for d in TagDetector().detect(image)]
+    detections = [refine_corners(image, d, CAMERA) for d in TagDetector().detect(image)]
     detections = [d for d in detections if d is not None]
     pose = estimate_target_pose(detections, CUBE, CAMERA).pose
     refined = refine_pose_on_edges(image, pose, CUBE, CAMERA)

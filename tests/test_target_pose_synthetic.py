@@ -119,7 +119,7 @@ def test_library_corners_are_in_opencv_pixels_after_the_half_pixel_shift():
     ])
     assert len(detections) == 3
     assert np.all(np.abs(offsets.mean(axis=0)) < 0.08)
-    refined = [refine_corners(image, d, CAMERA.camera_matrix, CAMERA.distortion) for d in detections]
+    refined = [refine_corners(image, d, CAMERA) for d in detections]
     right = estimate_target_pose(refined, CUBE, CAMERA).pose
     shifted = [TagDetection(d.tag_id, d.corners + 0.5, d.decision_margin, d.hamming) for d in refined]
     wrong = estimate_target_pose(shifted, CUBE, CAMERA).pose

@@ -15,6 +15,7 @@ import pytest
 
 from calib.camera_info import paper_camera
 from fakes.optics import project
+from positioning.camera_model import undistort
 from positioning.estimator import PoseState
 from positioning.evaluation import absolute_trajectory_error
 from positioning.geometry import Transform, look_at
@@ -30,7 +31,7 @@ from positioning.tracking.options import (
 )
 from positioning.tracking.patch_alignment import PatchAligner
 from positioning.tracking.tracker import Tracker
-from positioning.tracking.twoview import triangulate, undistort
+from positioning.tracking.twoview import triangulate
 from positioning.tracking.types import TargetObservation, Tracks
 from positioning.trajectory_io import StampedPose
 

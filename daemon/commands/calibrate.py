@@ -167,8 +167,8 @@ def _camera_settings(config_path: str | None):
 def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path) -> int:
     from calib.pipeline import ImageDetection, calibrate_views, views_from_detections
     from calib.solve import MIN_VIEWS
+    from daemon.cameras import make_camera
     from drivers.base import CameraBusy
-    from drivers.registry import make_camera
 
     if args.min_views < MIN_VIEWS or args.max_views < args.min_views:
         raise InputFileError(f"--min-views {args.min_views} / --max-views {args.max_views}: need {MIN_VIEWS} <= min <= max")

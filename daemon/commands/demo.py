@@ -47,7 +47,7 @@ class _RecordingFactory:
         self.camera = None
 
     def __call__(self, source, settings):
-        from drivers.registry import make_camera
+        from daemon.cameras import make_camera
 
         self.camera = make_camera(source, settings)
         return self.camera
@@ -56,7 +56,7 @@ class _RecordingFactory:
 def _warm_up(source: str) -> None:
     """Render one frame before the clock starts: the first render builds the ray grid and
     the room's textures (seconds), which would otherwise eat the start of a real-time run."""
-    from drivers.registry import make_camera
+    from daemon.cameras import make_camera
 
     with make_camera(source) as camera:
         camera.start()

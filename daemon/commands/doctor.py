@@ -93,7 +93,7 @@ def run(args) -> int:
 def diagnose(config_path: str | None, include_fake: bool = False, timeout_s: float = ZENOH_TIMEOUT_S) -> list[Check]:
     """Every check, in the order a technician would go."""
     from cubeloc.errors import CubelocError
-    from drivers.registry import parse_source
+    from daemon.cameras import parse_source
 
     config, checks = check_config(config_path)
     aravis_check, aravis_ok = check_aravis()

@@ -33,10 +33,10 @@ def run(args) -> int:
     from pathlib import Path
 
     from cubeloc.errors import ConfigError, InputFileError
+    from daemon.cameras import make_camera
     from daemon.config import load_config
     from daemon.logs import configure_logging
     from drivers.recorder import record_sequence
-    from drivers.registry import make_camera
     from drivers.sequence import SequenceWriter, camera_dir
 
     if args.frames is not None and args.frames <= 0:

@@ -69,12 +69,6 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def project(T_camera_world: Transform, points_world: np.ndarray) -> np.ndarray:
-    """Normalised projections (N, 2) of world points."""
-    p = T_camera_world.apply(points_world)
-    return p[:, :2] / p[:, 2:]
-
-
 def _projection(camera: np.ndarray, fx: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normalised projections (N, 2) of camera-frame points (N, 3), the Jacobians of their
     pixels (N, 2, 3) and the depths (N,) (clamped away from zero for the division)."""

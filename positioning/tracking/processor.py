@@ -1,8 +1,9 @@
 """``TrackingProcessor``: the whole pipeline as a ``FrameProcessor`` (image in, pose out).
 
-Per frame: KLT tracks follow the features; the target is searched where the current pose
-says it should be (and over the whole image every ``target_search_every`` frames while it
-should be out of view, so that it is found again even after drift); the tracker turns
+Per frame: KLT tracks follow the features; the target observer (observer.py, the one
+``cubeloc pose`` uses: edge-aligned poses, the tag-size check) searches where the current
+pose says the target should be (and over the whole image every ``target_search_every``
+frames while it is not found, so that it is found again even after drift); the tracker turns
 tracks and the target pose into this frame's pose; on keyframes new corners are detected
 and ORB descriptors stored; when lost, or held on rays (too few map points in view), the
 frame is matched against the keyframes every ``relocalise_every`` frames.
@@ -16,56 +17,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning.detection import (
-    FAMILY_CELLS,
-    DetectorOptions,
-    TagDetection,
-    TagDetector,
-    refine_corners,
-)
+from positioning.camera_model import project_normalised
+from positioning.detection import DetectorOptions
 from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
+from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
-from positioning.target_pose import PoseOptions, estimate_target_pose, unique_target_detections
+from positioning.target_pose import PoseOptions
 from positioning.tracking.features import KltFrontEnd
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.relocalise import Relocaliser
 from positioning.tracking.tracker import Tracker
-from positioning.tracking.twoview import project_normalised
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
-
-
-def target_roi(target_corners: np.ndarray, calibration: CameraCalibration, T_world_camera: Transform,
-               growth: float, margin_px: int) -> tuple[int, int, int, int] | None:
-    """Pixel box (x0, y0, x1, y1) where the target should appear from ``T_world_camera``,
-    enlarged for motion and drift; None when it is not wholly in front of the camera or
-    not in the image at all."""
-    in_camera = T_world_camera.inverse().apply(target_corners)
-    if np.any(in_camera[:, 2] <= 0.05):
-        return None
-    # Far outside the field of view the distortion polynomial folds points back into the
-    # image (measured: a cube 60+ degrees off-axis gave a whole-image box, 18 ms of search
-    # per frame for nothing). Keep to a field of view half as wide again as the image's.
-    k = calibration.camera_matrix
-    xn = in_camera[:, :2] / in_camera[:, 2:]
-    low_n = -k[:2, 2] / np.diag(k)[:2]
-    high_n = (np.array([calibration.width, calibration.height]) - 1 - k[:2, 2]) / np.diag(k)[:2]
-    spread = 0.25 * (high_n - low_n)
-    if np.any(xn < low_n - spread) or np.any(xn > high_n + spread):
-        return None
-    pixels, _ = cv2.projectPoints(in_camera, np.zeros(3), np.zeros(3), calibration.camera_matrix,
-                                  calibration.distortion)
-    pixels = pixels.reshape(-1, 2)
-    low, high = pixels.min(axis=0), pixels.max(axis=0)
-    pad = (high - low).max() * growth + margin_px
-    x0, y0 = (max(int(v), 0) for v in np.floor(low - pad))
-    x1 = min(int(np.ceil(high[0] + pad)) + 1, calibration.width)
-    y1 = min(int(np.ceil(high[1] + pad)) + 1, calibration.height)
-    return (x0, y0, x1, y1) if x1 - x0 >= 16 and y1 - y0 >= 16 else None
 
 
 @dataclass(frozen=True)
@@ -75,12 +41,10 @@ class ProcessorOptions:
     detector: DetectorOptions = field(default_factory=DetectorOptions)
     target_search_every: int = 10  # full-image target search period while it should be out of view
     relocalise_every: int = 2  # while lost, match against the keyframes on every n-th frame
-    roi_growth: float = 0.5  # the predicted target box grows by this fraction of its size per side
-    roi_margin_px: int = 24
-    # Corners from lines fitted to the tags' edges (detection.refine_corners): on the
-    # synthetic camera a quarter of the library's corner error; a tag whose edges do not
-    # fit its quad is left out of the pose.
+    # The target observer's refinements (observer.py): corners from the tags' edges, and
+    # the pose aligned to every cell edge; both on by default, as in ``cubeloc pose``.
     edge_refinement: bool = True
+    edge_alignment: bool = True
 
 
 class TrackingProcessor:
@@ -89,7 +53,8 @@ class TrackingProcessor:
         self.target = target
         self.calibration = calibration
         self.options = options or ProcessorOptions()
-        self._detector = TagDetector(target.family, self.options.detector)
+        self.observer = TargetObserver(target, calibration, self.options.pose, self.options.detector,
+                                       self.options.edge_refinement, edge_alignment=self.options.edge_alignment)
         self.tracker = Tracker(calibration, self.options.tracker)
         self.front_end = KltFrontEnd(self.options.tracker.features)
         self.relocaliser = Relocaliser(calibration, self.options.tracker)
@@ -104,52 +69,31 @@ class TrackingProcessor:
         self._frames_without_target = 0
         self._last_target_pose = None
         self._lost_frames = 0
+        self.observer.reset()
 
     def close(self) -> None:
         self.tracker.close()
 
     # ------------------------------------------------------------------ target
-    def _search_target(self, image: np.ndarray) -> list[TagDetection]:
-        pose = self.tracker.last_pose if self.tracker.initialised else self._last_target_pose
-        roi = None if pose is None else target_roi(self._target_corners, self.calibration, pose,
-                                                   self.options.roi_growth, self.options.roi_margin_px)
-        if roi is not None:
-            found = unique_target_detections(self._detector.detect(image, roi), self.target)
-            if found:
-                return found
-        self._frames_without_target += 1
-        if pose is None or self.tracker.lost or self._frames_without_target >= self.options.target_search_every:
+    def _observe_target(self, image: np.ndarray, seq: int) -> tuple[TargetObservation | None, tuple[int, ...]]:
+        """The target, searched where the current pose predicts it; over the full frame
+        when there is no pose, when lost, or every ``target_search_every`` frames while it
+        is not found (so that it is found again even after drift)."""
+        prior = self.tracker.last_pose if self.tracker.initialised else self._last_target_pose
+        full = (prior is None or self.tracker.lost
+                or self._frames_without_target + 1 >= self.options.target_search_every)
+        observed = self.observer.observe(image, prior, seq, full_search=full)
+        if observed.seen or observed.search.startswith("full"):
             self._frames_without_target = 0
-            return unique_target_detections(self._detector.detect(image), self.target)
-        return []
-
-    def _refine(self, image: np.ndarray, detections: list[TagDetection]) -> list[TagDetection]:
-        if not self.options.edge_refinement:
-            return detections
-        k, d = self.calibration.camera_matrix, self.calibration.distortion
-        cells = FAMILY_CELLS.get(self.target.family, 8)
-        refined = (refine_corners(image, detection, k, d, cells) for detection in detections)
-        return [r for r in refined if r is not None]
-
-    def _observe_target(self, image: np.ndarray) -> tuple[TargetObservation | None, tuple[int, ...]]:
-        found = self._search_target(image)
-        seen = tuple(d.tag_id for d in found)
-        detections = self._refine(image, found)
-        if not detections:
+        else:
+            self._frames_without_target += 1
+        pose = observed.pose
+        if pose is None:
             self._last_target_pose = None
-            return None, seen
-        self._frames_without_target = 0
-        outcome = estimate_target_pose(detections, self.target, self.calibration, self.options.pose,
-                                       self.tracker.last_pose)
-        if outcome.pose is None:
-            self._last_target_pose = None
-            return None, seen
-        pose = outcome.pose
+            return None, observed.seen
         self._last_target_pose = pose.T_world_camera
-        by_id = {d.tag_id: d for d in detections}
-        corners_px = np.concatenate([by_id[i].corners for i in pose.tag_ids]).astype(np.float64)
         return TargetObservation(pose.T_world_camera, pose.planes, pose.tag_ids, pose.reproj_rms_px,
-                                 corners_px, self.target.corners_of(pose.tag_ids), pose.covariance), seen
+                                 observed.corners_px, pose.points_world, pose.covariance), observed.seen
 
     def _target_outline(self, pose: Transform | None) -> np.ndarray | None:
         if pose is None:
@@ -162,14 +106,12 @@ class TrackingProcessor:
 
     # ------------------------------------------------------------------ frames
     def process(self, image: np.ndarray, stamp_ns: int, seq: int) -> FrameResult:
-        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 2:
-            return FrameResult(None, "bad_image", f"expected an (H, W) uint8 image, got {getattr(image, 'shape', None)}")
-        if image.shape != (self.calibration.height, self.calibration.width):
-            return FrameResult(None, "bad_image", f"image is {image.shape[1]}x{image.shape[0]}, the calibration is "
-                                                  f"for {self.calibration.width}x{self.calibration.height}")
+        problem = image_problem(image, self.calibration)
+        if problem is not None:
+            return FrameResult(None, "bad_image", problem)
         guesses = self.tracker.predict_pixels(stamp_ns, self.front_end.ids, self.front_end.pixels)
         tracks = self.front_end.track(image, guesses)
-        observation, seen = self._observe_target(image)
+        observation, seen = self._observe_target(image, seq)
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
         result = out.result

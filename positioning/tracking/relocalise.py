@@ -17,12 +17,12 @@ import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
+from positioning.camera_model import project_normalised, undistort
 from positioning.geometry import Transform
 from positioning.tracking.features import find_corners
 from positioning.tracking.map import Keyframe, Map
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import fit_pose
-from positioning.tracking.twoview import project_normalised, undistort
 
 ORB_PATCH_PX = 31  # ORB's default patch; keypoints closer than half of it to the edge are dropped
 

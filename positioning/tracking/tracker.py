@@ -39,6 +39,7 @@ import numpy as np
 import structlog
 
 from calib.camera_info import CameraCalibration
+from positioning.camera_model import project, project_normalised, undistort
 from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.tracking import bundle
@@ -47,7 +48,7 @@ from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import fit_pose
-from positioning.tracking.twoview import project_normalised, triangulate, undistort
+from positioning.tracking.twoview import triangulate
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
@@ -319,9 +320,7 @@ class Tracker:
         depth = float(np.median(depths)) if len(depths) else float(np.linalg.norm(self._last.translation))
         in_last[~has] = rays[~has] * float(np.clip(depth, 0.2, 50.0))
         in_next = T_next_last.apply(in_last)
-        projected, _ = cv2.projectPoints(in_next, np.zeros(3), np.zeros(3), self.calibration.camera_matrix,
-                                         self.calibration.distortion)
-        projected = projected.reshape(-1, 2)
+        projected = project(in_next, self.calibration)
         # a point behind the camera has no sensible guess: search from where it was
         unusable = (in_next[:, 2] <= 1e-3) | ~np.all(np.isfinite(projected), axis=1)
         projected[unusable] = np.asarray(pixels, np.float64).reshape(-1, 2)[unusable]

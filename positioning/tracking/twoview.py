@@ -1,4 +1,4 @@
-"""Two-view geometry on normalised image coordinates: undistortion, triangulation, checks.
+"""Two-view geometry on normalised image coordinates: triangulation and parallax.
 
 Everything inside the tracker works on undistorted normalised coordinates ``(x, y)`` of the
 ray ``(x, y, 1)``: the distortion is removed once per observation, and reprojection errors
@@ -12,36 +12,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.camera_info import CameraCalibration
+from positioning.camera_model import project_normalised
 from positioning.geometry import Transform
-
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
-
-
-def undistort(pixels: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
-    """Normalised coordinates (N, 2) of pixels (N, 2)."""
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    if len(pixels) == 0:
-        return np.zeros((0, 2))
-    identity = np.eye(3)
-    src = pixels.reshape(-1, 1, 2)
-    # OpenCV 5 folded undistortPointsIter's criteria into undistortPoints
-    if hasattr(cv2, "undistortPointsIter"):
-        out = cv2.undistortPointsIter(src, calibration.camera_matrix, calibration.distortion,
-                                      identity, identity, _UNDISTORT_CRITERIA)
-    else:
-        out = cv2.undistortPoints(src, calibration.camera_matrix, calibration.distortion, None,
-                                  identity, identity, _UNDISTORT_CRITERIA)
-    return out.reshape(-1, 2)
-
-
-def project_normalised(T_camera_world: Transform, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised projections (N, 2) and depths (N,) of world points in a camera."""
-    p = T_camera_world.apply(points_world)
-    z = p[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = p[:, :2] / z[:, None]
-    return xy, z
 
 
 @dataclass(frozen=True)

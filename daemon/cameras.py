@@ -1,0 +1,13 @@
+"""The camera sources the daemon offers: drivers' own (aravis, replay) and the synthetic
+camera of fakes/, registered here so that drivers/ knows nothing of fakes/.
+
+Everything in daemon/ (and the tests) makes cameras through this module.
+"""
+
+from __future__ import annotations
+
+from drivers.registry import BACKENDS, make_camera, parse_source, register_backend
+
+register_backend("synthetic", "fakes.camera:open_synthetic_source")
+
+__all__ = ["BACKENDS", "make_camera", "parse_source"]

@@ -1,0 +1,379 @@
+"""``TargetObserver``: the target in one image, searched, decoded, refined and posed.
+
+One observer serves both modes: ``TargetPoseProcessor`` (``single_frame.py``, the pose
+from the target alone) and the tracker's ``TrackingProcessor``, whose anchor observations
+are therefore the same edge-aligned poses with the same checks. Per image:
+
+* search: the tag regions predicted from a prior pose (decimated, fast; a tag missed there
+  is searched again in a masked region, everything outside its predicted quiet zone
+  painted white); the full frame (decimate 3) when they give fewer tags than last time,
+  if the caller allows a full search; after a full-frame pose, the masked regions of tags
+  the pose says are in view but were not found; when the full frame gives one face only,
+  faces whose residuals disagree or a second face too oblique, the neighbourhood of each
+  tag without decimation (recovery);
+* refine: corners from lines fitted to the tags' edges (``detection.refine_corners``),
+  skipped in the steady state where the edge alignment replaces it;
+* pose: ``target_pose.estimate_target_pose`` (EPnP + LM, residual and oblique checks), then
+  aligned to every cell edge of the tags (``edge_alignment``), with its covariance;
+* checks: the tag size against the layout, once per reset on a three-face pose, logged as
+  ``target_scale_mismatch`` and repeated in the detail of refused frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import structlog
+
+from calib.camera_info import CameraCalibration
+from positioning.camera_model import project, project_pose
+from positioning.detection import (
+    FAMILY_CELLS,
+    DetectorOptions,
+    TagDetection,
+    TagDetector,
+    refine_corners,
+)
+from positioning.edge_alignment import refine_pose_on_edges
+from positioning.geometry import Transform
+from positioning.target import Target
+from positioning.target_pose import (
+    PoseOptions,
+    Refusal,
+    TargetPose,
+    check_tag_scale,
+    estimate_target_pose,
+    pose_covariance,
+    single_plane_candidates,
+    unique_target_detections,
+)
+
+log = structlog.get_logger()
+
+# A predicted tag region grows by this fraction of the tag's size on each side, plus a
+# fixed margin: the camera moves between frames and the prediction is last frame's pose.
+REGION_GROWTH = 0.35
+REGION_MARGIN_PX = 16
+# Tags seen more obliquely than this are not predicted (they rarely decode anyway).
+MAX_PREDICTED_ANGLE_DEG = 80.0
+
+
+# A predicted tag this large (pixels) is searched with more decimation: its quad is still
+# 30 px or more in the decimated image, and a third cheaper to find.
+LARGE_TAG_PX = 90.0
+LARGE_TAG_DECIMATE = 3.0
+
+# Recovery searches this many tag sizes around a lone tag for its neighbours.
+NEIGHBOURHOOD_TAG_SIZES = 1.2
+# A tag needs a white quiet zone one cell wide; the masked search keeps this much of it.
+QUIET_ZONE_KEPT_CELLS = 0.8
+
+
+@dataclass(frozen=True)
+class TagRegion:
+    tag_id: int
+    roi: tuple[int, int, int, int]  # x0, y0, x1, y1 pixels
+    quiet_zone: np.ndarray  # (4, 2) pixels: the tag and most of its white margin, predicted
+    size_px: float = 0.0  # the tag's predicted size (longest side of its pixel box)
+
+
+def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
+                          growth: float = REGION_GROWTH, margin_px: int = REGION_MARGIN_PX) -> list[TagRegion]:
+    """Where each tag facing the camera at ``T_world_camera`` should appear, one pixel box
+    per tag, enlarged for motion; tags behind the camera or out of the image are left out."""
+    T_camera_world = T_world_camera.inverse()
+    cos_limit = np.cos(np.radians(MAX_PREDICTED_ANGLE_DEG))
+    # Far outside the field of view the distortion polynomial folds points back into the
+    # image (measured: a cube 60+ degrees off-axis gave a whole-image box, 18 ms of search
+    # per frame for nothing). Keep to a field of view half as wide again as the image's.
+    k = calibration.camera_matrix
+    low_n = -k[:2, 2] / np.diag(k)[:2]
+    high_n = (np.array([calibration.width, calibration.height]) - 1 - k[:2, 2]) / np.diag(k)[:2]
+    spread = 0.25 * (high_n - low_n)
+    regions = []
+    for tag in target.tags:
+        to_camera = T_world_camera.translation - tag.center
+        if float(tag.normal @ to_camera) <= cos_limit * float(np.linalg.norm(to_camera)):
+            continue  # seen edge-on or from behind
+        in_camera = T_camera_world.apply(tag.corners)
+        if np.any(in_camera[:, 2] <= 0.05):
+            continue
+        xn = in_camera[:, :2] / in_camera[:, 2:]
+        if np.any(xn < low_n - spread) or np.any(xn > high_n + spread):
+            continue
+        grow = 1.0 + 2.0 * QUIET_ZONE_KEPT_CELLS / FAMILY_CELLS[target.family]
+        centre = in_camera.mean(axis=0)
+        outline = np.concatenate([in_camera, centre + grow * (in_camera - centre)])
+        pixels = project(outline, calibration)
+        pixels, quiet_zone = pixels[:4], pixels[4:]
+        low, high = pixels.min(axis=0), pixels.max(axis=0)
+        pad = (high - low).max() * growth + margin_px
+        x0, y0 = np.floor(low - pad).astype(int)
+        x1, y1 = np.ceil(high + pad).astype(int) + 1
+        x0, y0 = max(int(x0), 0), max(int(y0), 0)
+        x1, y1 = min(int(x1), calibration.width), min(int(y1), calibration.height)
+        if x1 - x0 >= 16 and y1 - y0 >= 16:
+            regions.append(TagRegion(tag.tag_id, (x0, y0, x1, y1), quiet_zone, float((high - low).max())))
+    return regions
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What the observer made of one image: a pose, or the refusal and why.
+
+    ``corners_px`` are the used tags' corners (M, 2) where the returned pose puts them
+    (after the edge alignment, the pose's projection of ``pose.points_world``: the edges'
+    information, for the tracker's bundle adjustment); ``seen`` the target's tags decoded.
+    """
+
+    pose: TargetPose | None
+    refusal: Refusal | None = None
+    detail: str = ""
+    seen: tuple[int, ...] = ()
+    corners_px: np.ndarray | None = None
+    search: str = ""  # "predicted", "full", "+completion", "+recovery"; "" when none ran
+
+
+def image_problem(image, calibration: CameraCalibration) -> str | None:
+    """Why ``image`` cannot be processed with ``calibration`` (None when it can)."""
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 2:
+        shape = getattr(image, "shape", None)
+        dtype = getattr(image, "dtype", type(image).__name__)
+        return f"expected an (H, W) uint8 image, got {dtype} {shape}"
+    if image.shape != (calibration.height, calibration.width):
+        return (f"image is {image.shape[1]}x{image.shape[0]}, the calibration is for "
+                f"{calibration.width}x{calibration.height}")
+    return None
+
+
+class TargetObserver:
+    """The target in one image at a time (see the module docstring for the search order).
+
+    ``observe(image, prior, seq, full_search)``: ``prior`` (T_world_camera) predicts the tag
+    regions and resolves a single face; ``full_search`` False keeps to the predicted
+    regions (the tracker, while the target should be out of view, searches the full frame
+    only every few frames). State kept between calls: how many tags the last pose used,
+    which tags needed the masked search, whether the tag size was checked.
+    """
+
+    def __init__(self, target: Target, calibration: CameraCalibration, options: PoseOptions | None = None,
+                 detector_options: DetectorOptions | None = None, edge_refinement: bool = True,
+                 full_frame_decimate: float = 3.0, edge_alignment: bool = True) -> None:
+        self.target = target
+        self.calibration = calibration
+        self.options = options or PoseOptions()
+        self._detector = TagDetector(target.family, detector_options)
+        self.edge_refinement = edge_refinement
+        self.edge_alignment = edge_alignment  # align the pose to every cell edge (edge_alignment.py)
+        self.full_frame_decimate = full_frame_decimate
+        self._prior: Transform | None = None
+        self._last_tag_count = 0
+        self._scale_checked = False
+        self.last_search = ""
+        self._suspects: set[int] = set()  # this frame's tags whose quads failed refinement
+        self._masked_ids: set[int] = set()  # tags found only by the masked search
+        self._scale_message = ""  # the tag-size warning, repeated on every refused frame
+
+    def reset(self) -> None:
+        self._scale_message = ""
+        self._masked_ids = set()
+        self._prior = None
+        self._last_tag_count = 0
+        self._scale_checked = False
+        self.last_search = ""
+
+    def _ours(self, detections: list[TagDetection]) -> list[TagDetection]:
+        return unique_target_detections(detections, self.target)
+
+    def _detect_in(self, image: np.ndarray, regions: list[TagRegion], decimate: float | None) -> list[TagDetection]:
+        found: list[TagDetection] = []
+        for region in regions:
+            region_decimate = decimate
+            if decimate is None and region.size_px >= LARGE_TAG_PX:
+                region_decimate = LARGE_TAG_DECIMATE
+            found.extend(self._detector.detect(image, region.roi, region_decimate))
+        return self._ours(found)
+
+    def _detect_masked(self, image: np.ndarray, regions: list[TagRegion]) -> list[TagDetection]:
+        """Search each region with everything outside the tag's predicted quiet zone
+        painted white, so the background cannot break its quad."""
+        found: list[TagDetection] = []
+        for region in regions:
+            x0, y0, x1, y1 = region.roi
+            crop = image[y0:y1, x0:x1].copy()
+            inside = np.zeros(crop.shape, np.uint8)
+            cv2.fillConvexPoly(inside, np.round(region.quiet_zone - (x0, y0)).astype(np.int32), 1)
+            if not inside.any():
+                continue
+            white = np.percentile(crop[inside == 1], 90)
+            crop[inside == 0] = np.uint8(white)
+            # Decimated first (4x cheaper); without decimation only if that finds nothing.
+            detections = [d for d in self._detector.detect(crop) if d.tag_id == region.tag_id]
+            if not detections:
+                detections = self._detector.detect(crop, None, 1.0)
+            for detection in detections:
+                found.append(TagDetection(detection.tag_id, detection.corners + (x0, y0),
+                                          detection.decision_margin, detection.hamming))
+        return self._ours(found)
+
+    def _search(self, image: np.ndarray, full_search: bool) -> list[TagDetection]:
+        found: list[TagDetection] = []
+        if self._prior is not None:
+            regions = predicted_tag_regions(self.target, self.calibration, self._prior)
+            if regions:
+                # Tags that needed the masked search last frame go straight to it.
+                masked = [r for r in regions if r.tag_id in self._masked_ids]
+                found = self._detect_in(image, [r for r in regions if r.tag_id not in self._masked_ids], None)
+                found += self._detect_masked(image, masked)
+                if found and len(found) < self._last_tag_count:
+                    have = {d.tag_id for d in found}
+                    found += self._detect_masked(image, [r for r in regions if r.tag_id not in have])
+                if found and len(found) >= self._last_tag_count:
+                    self.last_search = "predicted"
+                    return found
+        if not full_search:
+            self.last_search = "predicted" if found else ""
+            return found
+        self.last_search = "full"
+        # Coarse first (decimate 3: a third of the cost of the paper's 2); the tags it
+        # misses next to found ones are recovered by the completion search, and only an
+        # empty result pays for the finer pass.
+        found = self._ours(self._detector.detect(image, None, self.full_frame_decimate))
+        if not found and self.full_frame_decimate > self._detector.options.quad_decimate:
+            found = self._ours(self._detector.detect(image))
+        return found
+
+    def _complete(self, image: np.ndarray, detections: list[TagDetection], pose: Transform) -> list[TagDetection]:
+        """Tags the pose says are in view but the full-frame search missed, if found."""
+        have = {d.tag_id for d in detections}
+        missing = [r for r in predicted_tag_regions(self.target, self.calibration, pose) if r.tag_id not in have]
+        if not missing:
+            return []
+        extra = [d for d in self._detect_masked(image, missing) if d.tag_id not in have]
+        self._masked_ids |= {d.tag_id for d in extra}
+        if extra:
+            self.last_search = f"{self.last_search}+completion"
+        return self._refine(image, extra)
+
+    def _recover(self, image: np.ndarray, detections: list[TagDetection]):
+        """One face found, or faces that disagree (a bad quad with a valid id). From each
+        tag alone: first the neighbourhood of the tag without decimation (the other faces
+        of a cube are within one tag size of it), then the regions its two possible poses
+        predict (masked); tags found there settle the pose, if any is right."""
+        for seed in sorted(detections, key=lambda d: -d.decision_margin):
+            low, high = seed.corners.min(axis=0), seed.corners.max(axis=0)
+            reach = float((high - low).max()) * NEIGHBOURHOOD_TAG_SIZES
+            x0, y0 = np.floor(low - reach).astype(int)
+            x1, y1 = np.ceil(high + reach).astype(int)
+            near = [d for d in self._ours(self._detector.detect(image, (x0, y0, x1, y1), 1.0))
+                    if d.tag_id != seed.tag_id]
+            attempts = [self._refine(image, near)] if near else []
+            attempts += [self._complete(image, [seed], candidate)
+                         for candidate in single_plane_candidates([seed], self.target, self.calibration)]
+            for extra in attempts:
+                if not extra:
+                    continue
+                outcome = estimate_target_pose([seed, *extra], self.target, self.calibration, self.options,
+                                               self._prior)
+                if outcome.pose is not None:
+                    self.last_search = "full+recovery"
+                    return outcome, [seed, *extra]
+        return None
+
+    def _refine(self, image: np.ndarray, detections: list[TagDetection]) -> list[TagDetection]:
+        """Corners from lines fitted to the tags' edges (see detection.refine_corners; on
+        the synthetic camera a quarter of the library's corner error at 2 m). A detection
+        whose edges do not fit its quad (a wrong quad with a right id) is dropped, and
+        its id kept in ``self._suspects`` so that it is searched for again."""
+        if not self.edge_refinement:
+            return detections
+        cells = FAMILY_CELLS[self.target.family]
+        refined = []
+        for detection in detections:
+            better = refine_corners(image, detection, self.calibration, cells)
+            if better is None:
+                self._suspects.add(detection.tag_id)
+            else:
+                refined.append(better)
+        return refined
+
+    def observe(self, image: np.ndarray, prior: Transform | None, seq: int = 0,
+                full_search: bool = True) -> Observation:
+        """The target's pose in ``image`` (checked by the caller: ``image_problem``)."""
+        self._prior = prior
+        try:
+            observation = self._observe(image, seq, full_search)
+        except (cv2.error, np.linalg.LinAlgError) as exc:  # a degenerate view, not a bug of the caller's
+            observation = Observation(None, Refusal.SOLVER,
+                                      f"no pose: {type(exc).__name__}: {str(exc).strip()[:200]}")
+        if observation.pose is None:
+            self._last_tag_count = 0
+            self._masked_ids = set()
+        else:
+            self._last_tag_count = len(observation.pose.tag_ids)
+        return observation
+
+    def _observe(self, image: np.ndarray, seq: int, full_search: bool) -> Observation:
+        self._suspects = set()
+        found = self._search(image, full_search)
+        if not found:
+            return Observation(None, Refusal.NO_TARGET, "no tag of the target in view", (), None, self.last_search)
+        # In the steady state the edge alignment replaces the corner refinement: the
+        # library's corners only need to bring the pose within a third of a cell.
+        steady = self.edge_alignment and self.last_search == "predicted"
+        detections = found if steady else self._refine(image, found)
+        outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
+                                       with_covariance=not self.edge_alignment)
+        if outcome.pose is not None and (self.last_search == "full" or self._suspects):
+            # Search again for the tags the pose says are in view but it did not use
+            # (not found, or left out as a bad quad); keep what improves the pose.
+            used = [d for d in detections if d.tag_id in outcome.pose.tag_ids]
+            extra = self._complete(image, used, outcome.pose.T_world_camera)
+            if extra:
+                completed = estimate_target_pose(used + extra, self.target, self.calibration, self.options,
+                                                 self._prior, with_covariance=not self.edge_alignment)
+                if completed.pose is not None and len(completed.pose.tag_ids) > len(outcome.pose.tag_ids):
+                    outcome, detections = completed, used + extra
+        elif self.last_search == "full" and outcome.refusal in (Refusal.ONE_FACE, Refusal.REPROJECTION,
+                                                                 Refusal.OBLIQUE):
+            recovered = self._recover(image, detections)
+            if recovered is not None:
+                outcome, detections = recovered
+        seen = tuple(sorted({d.tag_id for d in detections}))
+        if outcome.pose is None:
+            detail = outcome.detail
+            if outcome.rejected is not None:
+                # Large residuals on several faces: is the tag size in the file wrong?
+                if not self._scale_checked:
+                    self._scale_message = self._warn_on_scale(detections, outcome.rejected, seq)
+                detail = f"{detail}; {self._scale_message}" if self._scale_message else detail
+            return Observation(None, outcome.refusal, detail, seen, None, self.last_search)
+        pose = outcome.pose
+        by_id = {d.tag_id: d for d in detections}
+        corners_px = np.concatenate([by_id[i].corners for i in pose.tag_ids]).astype(np.float64)
+        if self.edge_alignment:
+            aligned = refine_pose_on_edges(image, pose, self.target, self.calibration)
+            if aligned.covariance is None:  # the alignment failed: the corners' pose stands
+                pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
+            else:
+                pose = aligned
+                corners_px = project_pose(pose.points_world, pose.rvec, pose.tvec, self.calibration)
+        elif pose.covariance is None:
+            pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
+        if not self._scale_checked and pose.planes >= 3:
+            self._warn_on_scale(detections, pose, seq)
+        return Observation(pose, None, outcome.detail, seen, corners_px, self.last_search)
+
+    def _warn_on_scale(self, detections: list[TagDetection], pose, seq: int) -> str:
+        """Once per reset: does the target file's tag size match the printed tags?
+        Returns the warning ("" when they agree or it cannot tell)."""
+        self._scale_checked = True
+        check = check_tag_scale(detections, self.target, self.calibration, pose)
+        if check is None or check.agrees:
+            return ""
+        log.warning("target_scale_mismatch", seq=seq, tag_scale=round(check.tag_scale, 4),
+                    detail=check.message(), target=self.target.source)
+        return check.message()
