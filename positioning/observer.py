@@ -57,8 +57,9 @@ log = structlog.get_logger()
 # fixed margin: the camera moves between frames and the prediction is last frame's pose.
 REGION_GROWTH = 0.35
 REGION_MARGIN_PX = 16
-# Tags seen more obliquely than this are not predicted (they rarely decode anyway).
-MAX_PREDICTED_ANGLE_DEG = 80.0
+# Tags seen more obliquely than this are not predicted: the library decoded a tag at 85 deg
+# on the range map (bench range), none beyond.
+MAX_PREDICTED_ANGLE_DEG = 87.0
 
 
 # A predicted tag this large (pixels) is searched with more decimation: its quad is still
@@ -174,6 +175,7 @@ class TargetObserver:
         self._scale_checked = False
         self.last_search = ""
         self._suspects: set[int] = set()  # this frame's tags whose quads failed refinement
+        self._decoded: set[int] = set()  # this frame's tags decoded by any search
         self._masked_ids: set[int] = set()  # tags found only by the masked search
         self._scale_message = ""  # the tag-size warning, repeated on every refused frame
 
@@ -186,7 +188,9 @@ class TargetObserver:
         self.last_search = ""
 
     def _ours(self, detections: list[TagDetection]) -> list[TagDetection]:
-        return unique_target_detections(detections, self.target)
+        ours = unique_target_detections(detections, self.target)
+        self._decoded |= {d.tag_id for d in ours}
+        return ours
 
     def _detect_in(self, image: np.ndarray, regions: list[TagRegion], decimate: float | None) -> list[TagDetection]:
         found: list[TagDetection] = []
@@ -318,6 +322,7 @@ class TargetObserver:
 
     def _observe(self, image: np.ndarray, seq: int, full_search: bool) -> Observation:
         self._suspects = set()
+        self._decoded = set()
         found = self._search(image, full_search)
         if not found:
             return Observation(None, Refusal.NO_TARGET, "no tag of the target in view", (), None, self.last_search)
@@ -342,7 +347,7 @@ class TargetObserver:
             recovered = self._recover(image, detections)
             if recovered is not None:
                 outcome, detections = recovered
-        seen = tuple(sorted({d.tag_id for d in detections}))
+        seen = tuple(sorted(self._decoded))  # every tag decoded, used or not
         if outcome.pose is None:
             detail = outcome.detail
             if outcome.rejected is not None:

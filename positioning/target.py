@@ -167,6 +167,25 @@ def make_cube(
     return target
 
 
+def make_board(rows: int = 6, cols: int = 6, tag_size_m: float = 0.088, gap_m: float = 0.026,
+               first_id: int = 0, family: str = "tag36h11") -> Target:
+    """A flat grid of tags (an AprilGrid such as Kalibr's): ``rows`` x ``cols`` tags of
+    ``tag_size_m`` with ``gap_m`` between them, ids from ``first_id`` row by row, in the
+    plane z = 0 facing +z, its top-left tag's top-left corner at the origin (x right along
+    a row, y up the board, rows going down)."""
+    pitch = tag_size_m + gap_m
+    tags = []
+    for row in range(rows):
+        for col in range(cols):
+            x0, y0 = col * pitch, -row * pitch
+            corners = np.array([[x0, y0, 0.0], [x0 + tag_size_m, y0, 0.0], [x0 + tag_size_m, y0 - tag_size_m, 0.0],
+                                [x0, y0 - tag_size_m, 0.0]])
+            tags.append(Tag(first_id + row * cols + col, corners))
+    target = Target(family, tuple(tags))
+    validate_target(target, "board")
+    return target
+
+
 def validate_target(target: Target, where: str) -> None:
     """Raise InputFileError naming ``where`` and the first problem found."""
     if target.family not in KNOWN_FAMILIES:
