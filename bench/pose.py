@@ -3,9 +3,8 @@
 ``python -m bench pose`` measures the median time per 1280x1024 frame of detection +
 pose (full-frame search, and the steady state searching only the regions predicted from
 the last pose), and compares the AprilTag bindings that are installed on speed and pose
-accuracy. ``python -m bench.pose range`` runs the long effective-range sweep (the paper's
-Fig. 8) before and after the edge alignment and writes docs/range/; ``python -m bench.pose
-accuracy`` prints the before/after accuracy table of docs/pose.md.
+accuracy. ``python -m bench.pose accuracy`` prints the before/after accuracy table of
+docs/pose.md. The effective range (the paper's Fig. 8) is ``python -m bench range``.
 """
 
 from __future__ import annotations
@@ -260,148 +259,10 @@ def run() -> str:
     return "\n".join(body)
 
 
-# The effective range (Fig. 8) -----------------------------------------------------------
-
-PLANE_COLOURS = {3: (46, 160, 67), 2: (240, 190, 40), 1: (230, 120, 40), 0: (200, 60, 60)}
-
-
-def draw_range_map(cells, path: Path, elevation_deg: float) -> None:
-    """A quarter-disc around the cube (seen from above): each view a sector at its
-    azimuth and distance, coloured by the faces the pose used, labelled with its error."""
-    from PIL import Image, ImageDraw, ImageFont
-
-    distances = sorted({c.distance_m for c in cells})
-    azimuths = sorted({c.azimuth_deg for c in cells})
-    half_az = (azimuths[1] - azimuths[0]) / 2 if len(azimuths) > 1 else 5.0
-    scale = 150  # px per metre
-    pad = 70
-    size = int(distances[-1] * scale * 1.08) + 2 * pad
-    image = Image.new("RGB", (size + 260, size), "white")
-    draw = ImageDraw.Draw(image)
-    font = ImageFont.load_default(size=13)
-    centre = (pad, size - pad)  # the cube, x axis to the right, y axis up
-    edges = [0.0] + [(a + b) / 2 for a, b in zip(distances[:-1], distances[1:], strict=True)] + [distances[-1] + 0.25]
-    for index in range(len(distances) - 1, -1, -1):
-        outer = edges[index + 1] * scale
-        box = [centre[0] - outer, centre[1] - outer, centre[0] + outer, centre[1] + outer]
-        for cell in cells:
-            if cell.distance_m != distances[index]:
-                continue
-            start, end = -(cell.azimuth_deg + half_az), -(cell.azimuth_deg - half_az)  # PIL: clockwise, y down
-            draw.pieslice(box, start, end, fill=PLANE_COLOURS[min(cell.planes, 3)], outline="white")
-    for cell in cells:
-        if cell.error_mm is None:
-            continue
-        r = cell.distance_m * scale
-        a = np.radians(cell.azimuth_deg)
-        draw.text((centre[0] + r * np.cos(a), centre[1] - r * np.sin(a)), f"{cell.error_mm:.1f}",
-                  fill="black", font=font, anchor="mm")
-    side = 0.18 * scale
-    draw.rectangle([centre[0] - side / 2, centre[1] - side / 2, centre[0] + side / 2, centre[1] + side / 2],
-                   fill="black")
-    for d in range(1, int(distances[-1]) + 1):
-        draw.text((centre[0] + d * scale, centre[1] + 8), f"{d} m", fill="black", font=font, anchor="mt")
-    draw.text((centre[0] - 10, centre[1] - distances[-1] * scale), "+y", fill="black", font=font, anchor="rm")
-    draw.text((centre[0] + distances[-1] * scale + 10, centre[1]), "+x", fill="black", font=font, anchor="lm")
-    legend_x = size + 10
-    lines = [(3, "3 faces"), (2, "2 faces (planes: 2)"), (0, "no pose")]
-    for k, (planes, label) in enumerate(lines):
-        y = pad + 24 * k
-        draw.rectangle([legend_x, y, legend_x + 16, y + 16], fill=PLANE_COLOURS[planes])
-        draw.text((legend_x + 24, y + 8), label, fill="black", font=font, anchor="lm")
-    draw.text((legend_x, pad + 90), f"camera elevation {elevation_deg:.0f} deg,\naimed at the cube centre;\n"
-              "numbers: position error, mm\n(one frame, sigma 2 noise)", fill="black", font=font)
-    image.save(path)
-
-
-def range_report(out: Path = DOCS / "range") -> str:
-    from calib.camera_info import paper_camera
-    from fakes import Room, render_view
-    from positioning.range_map import critical_angle, face_angle_sweep, range_sweep, summary_rows
-    from positioning.target import make_cube
-
-    cube, camera = make_cube(), paper_camera()
-
-    # The default room is 10 m x 8 m x 3 m: too small for a camera 5 m out and up.
-    room = Room(x_range=(-7.0, 7.0), y_range=(-7.0, 7.0), z_range=(-0.09, 4.0))
-
-    rendered: dict[int, np.ndarray] = {}
-
-    def render(T, seed):  # the same frames for both sweeps (seeds are unique per view)
-        if seed not in rendered:
-            rendered[seed] = render_view(T, seed=seed, room=room)
-        return rendered[seed]
-
-    azimuths = list(range(0, 91, 10))
-    distances = [0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0]
-    elevation = 30.0
-    cells = range_sweep(cube, camera, render, azimuths, distances, elevation)
-    before = range_sweep(cube, camera, render, azimuths, distances, elevation, edge_alignment=False)
-    rendered.clear()
-    angles = list(range(50, 90))
-    angle_distances = [1.0, 2.0, 3.0]
-    samples = face_angle_sweep(cube, camera, render, 0, angles, angle_distances)
-    out.mkdir(parents=True, exist_ok=True)
-    draw_range_map(cells, out / "range_map.png", elevation)
-    draw_range_map(before, out / "range_map_corners_only.png", elevation)
-    rows = summary_rows(cells)
-    rows_before = summary_rows(before)
-
-    def mm(value):
-        return "-" if value is None else f"{value:.2f}"
-
-    table = markdown_table(
-        ["distance m", "views", "3 faces", "2 faces", "no pose", "(of which 1 face seen)", "why no pose",
-         "median error 3 faces mm (corners only)", "median error 2 faces mm (corners only)",
-         "max error mm (corners only)"],
-        [[r["distance_m"], r["views"], r["three"], r["two"], r["none"], r["one_face_only"],
-          ", ".join(r["reasons"]) or "-",
-          f"{mm(r['median_3_mm'])} ({mm(b['median_3_mm'])})", f"{mm(r['median_2_mm'])} ({mm(b['median_2_mm'])})",
-          f"{mm(r['max_mm'])} ({mm(b['max_mm'])})"] for r, b in zip(rows, rows_before, strict=True)],
-    )
-    # The gain per distance and azimuth: corners-only error over edge-aligned error.
-    error = {(c.distance_m, c.azimuth_deg): c.error_mm for c in cells}
-    gain_rows = []
-    for distance in distances:
-        row = [f"{distance:g}"]
-        for azimuth in azimuths:
-            b = next(c.error_mm for c in before if c.distance_m == distance and c.azimuth_deg == azimuth)
-            a = error[(distance, float(azimuth))]
-            row.append("-" if a is None or b is None else f"{b:.2f}/{a:.2f}")
-        gain_rows.append(row)
-    gain_table = markdown_table(["distance m \\ azimuth deg", *[str(a) for a in azimuths]], gain_rows)
-    ratios = [b.error_mm / a.error_mm for a, b in zip(cells, before, strict=True)
-              if a.error_mm and b.error_mm]
-    critical = {d: critical_angle(samples, d) for d in angle_distances}
-    critical_text = ", ".join(f"{d:.0f} m: {a if a is not None else '<50'} deg" for d, a in critical.items())
-    text = (
-        "# Effective range of the single-frame pose (the paper's Fig. 8)\n\n"
-        f"Synthetic camera: the paper's (fx = fy = 1667 px, 1280x1024, noise sigma 2), 18 cm cube "
-        f"with 14.4 cm tag36h11 tags, textured room. Camera at elevation {elevation:.0f} deg, "
-        f"azimuth 0-90 deg (by symmetry the rest of the circle), aimed at the cube centre, one "
-        f"frame per view, no previous pose. Reproduce: `.venv/bin/python -m bench.pose range`.\n\n"
-        "![range map](range_map.png)\n\nThe same sweep with the corners-only pose (before issue 9): "
-        "[range_map_corners_only.png](range_map_corners_only.png). Coverage (which views give a pose) is "
-        "the same: the edge alignment refines a pose, it does not find more tags.\n\n" + table +
-        f"\nError per view, corners only / edge alignment, mm (median gain over all views with a pose: "
-        f"{np.median(ratios):.1f}x):\n\n" + gain_table +
-        f"\nCritical face angle (largest angle between a face's normal and the line of sight at "
-        f"which its tag still decodes, camera level with the cube, 1 deg steps): {critical_text}. "
-        "Paper: 77.16 deg.\n\n"
-        "Why no pose: `one_face` (only one face decoded: a plane alone is ambiguous), `oblique` "
-        "(the second plane is a tag seen almost edge-on and under 40 px wide, whose corners "
-        "are too poor to trust: refused rather than published with centimetres of error).\n"
-    )
-    (out / "range.md").write_text(text)
-    return text
-
-
 if __name__ == "__main__":
     cv2.setNumThreads(1)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    if sys.argv[1:] == ["range"]:
-        print(range_report())
-    elif sys.argv[1:] == ["accuracy"]:
+    if sys.argv[1:] == ["accuracy"]:
         print(accuracy_report())
     else:
         print(run())

@@ -249,6 +249,23 @@ def recall_table(rows: list[dict]) -> str:
                            "cubeloc's search", "found at decimate 2, not by cubeloc"], table)
 
 
+def azimuth_table(rows: list[dict]) -> str:
+    """Per distance and azimuth (both lenses, every elevation): poses new/baseline of the
+    views, and the median errors new/baseline where both have one (mm)."""
+    table = []
+    for distance in DISTANCES:
+        cells = [f"{distance:g}"]
+        for azimuth in AZIMUTHS:
+            at = [r for r in rows if r["distance_m"] == distance and r["azimuth_deg"] == azimuth]
+            new = sum(r["new"]["error_mm"] is not None for r in at)
+            base = sum(r["baseline_mm"] is not None for r in at)
+            both = [r for r in at if r["baseline_mm"] is not None and r["new"]["error_mm"] is not None]
+            cells.append(f"{new}/{base}: {_median([r['new']['error_mm'] for r in both])}/"
+                         f"{_median([r['baseline_mm'] for r in both])}")
+        table.append(cells)
+    return markdown_table(["distance m \\ azimuth deg", *[str(a) for a in AZIMUTHS]], table)
+
+
 def run() -> str:
     keep = os.environ.get("CUBELOC_BENCH_RANGE")
     with tempfile.TemporaryDirectory(prefix="cubeloc-bench-frames-") as tmp:
@@ -259,6 +276,11 @@ def run() -> str:
     text = (f"{len(rows)} views (two lenses x {len(DISTANCES)} distances x {len(ELEVATIONS)} elevations x "
             f"{len(AZIMUTHS)} azimuths), one frame each. Previous: commit {PREVIOUS_COMMIT}.\n\n"
             + success_table(rows) + "\nDetection recall (the target's tags):\n\n" + recall_table(rows))
+    (DOCS / "range.md").write_text(
+        "# Effective range of the single-frame pose (the paper's Fig. 8)\n\n" + (__doc__ or "").split("\n\n", 1)[1]
+        + "\n" + text + "\nPer distance and azimuth, both lenses and every elevation together: poses "
+        "new/baseline, then median error new/baseline (mm) over the views where both have a pose:\n\n"
+        + azimuth_table(rows))
     return text
 
 
