@@ -147,9 +147,10 @@ def test_live_capture_from_a_replayed_camera_saves_views_that_re_solve(tmp_path)
     assert again.returncode == 0, again.stderr
     resolved = read_camera_info(resolved_out)
     # the same corners (from the saved cache) give the same calibration; to 1e-5 px, not
-    # bit for bit: OpenCV's solver sums in threads, and CI measured cx 3.6e-7 px apart
+    # bit for bit: OpenCV's solver sums in threads (CI measured cx 3.6e-7 px apart, and a
+    # loaded 2-core machine k2 1.9e-8 apart, 2.7e-6 of its value)
     np.testing.assert_allclose(resolved.camera_matrix, live.camera_matrix, rtol=0, atol=1e-5)
-    np.testing.assert_allclose(resolved.distortion, live.distortion, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(resolved.distortion, live.distortion, rtol=1e-5, atol=1e-7)
 
     # a second capture to the same output needs --force (checked before the camera opens)
     refused = run_cli("calibrate", "--camera", f"replay:{sequence}", "--board", CHARUCO, "--out", str(out))
