@@ -39,12 +39,12 @@ from positioning.detection import (
 )
 from positioning.edge_alignment import refine_pose_on_edges
 from positioning.geometry import Transform
+from positioning.tag_scale import check_tag_scale
 from positioning.target import Target
 from positioning.target_pose import (
     PoseOptions,
     Refusal,
     TargetPose,
-    check_tag_scale,
     estimate_target_pose,
     pose_covariance,
     single_plane_candidates,

@@ -9,11 +9,11 @@ from calib.camera_info import paper_camera
 from fakes.optics import project
 from positioning.detection import TagDetection
 from positioning.geometry import Transform, look_at
+from positioning.tag_scale import check_tag_scale
 from positioning.target import make_cube
 from positioning.target_pose import (
     PoseOptions,
     Refusal,
-    check_tag_scale,
     count_planes,
     estimate_target_pose,
 )
