@@ -332,6 +332,12 @@ class TargetObserver:
         detections = found if steady else self._refine(image, found)
         outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
                                        with_covariance=not self.edge_alignment)
+        if steady and (outcome.pose is None or len(outcome.pose.tag_ids) < len(detections)):
+            # a tag left out or no pose from the library's corners (a blurred quad): the
+            # refined corners drop a bad quad by its edges, not by its neighbours' pose
+            detections = self._refine(image, found)
+            outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
+                                           with_covariance=False)
         if outcome.pose is not None and (self.last_search == "full" or self._suspects):
             # Search again for the tags the pose says are in view but it did not use
             # (not found, or left out as a bad quad); keep what improves the pose.
@@ -361,8 +367,9 @@ class TargetObserver:
         corners_px = np.concatenate([by_id[i].corners for i in pose.tag_ids]).astype(np.float64)
         if self.edge_alignment:
             aligned = refine_pose_on_edges(image, pose, self.target, self.calibration)
-            if aligned.covariance is None:  # the alignment failed: the corners' pose stands
-                pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
+            if aligned is pose:  # the alignment failed: the corners' pose stands
+                if pose.covariance is None:
+                    pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
             else:
                 pose = aligned
                 corners_px = project_pose(pose.points_world, pose.rvec, pose.tvec, self.calibration)

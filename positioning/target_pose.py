@@ -309,6 +309,20 @@ def corner_sigma_scale(pose: TargetPose, detections: list[TagDetection], target:
     return scale
 
 
+def _agreeing(pose: TargetPose, steep: list[TagDetection], scale: dict[int, float], target: Target,
+              calibration: CameraCalibration) -> list[TagDetection]:
+    """The steep tags whose corners ``pose`` predicts within 3 times their expected noise
+    (the pose's own corner RMS, at least ``PLANE_NOISE_FLOOR_PX``, times their scale)."""
+    noise = max(pose.reproj_rms_px, PLANE_NOISE_FLOOR_PX)
+    out = []
+    for detection in steep:
+        predicted = _project(target.tag(detection.tag_id).corners, pose.rvec, pose.tvec, calibration)
+        rms = float(np.sqrt(np.mean(np.sum((detection.corners - predicted) ** 2, axis=1))))
+        if rms <= 3.0 * scale.get(detection.tag_id, 1.0) * noise:
+            out.append(detection)
+    return out
+
+
 def _weighted_refine(pose: TargetPose, observed: np.ndarray, weights: np.ndarray, calibration: CameraCalibration,
                      iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton on the corners ``observed`` (N, 2) whitened by ``weights`` (N,), from the
@@ -409,9 +423,30 @@ def _estimate(
         return PoseOutcome(None, Refusal.NO_TARGET, "no tag of the target in view")
     outcome = _solve(ours, target, calibration, options, previous)
     if outcome.pose is not None:
-        if outcome.pose.planes >= 2 and oblique_tags(outcome.pose, ours, target, options):
-            return _weigh_oblique(outcome.pose, ours, target, calibration, options)
-        return outcome
+        oblique = oblique_tags(outcome.pose, ours, target, options) if outcome.pose.planes >= 2 else set()
+        if not oblique:
+            return outcome
+        pose = outcome.pose
+        kept = [d for d in ours if d.tag_id not in oblique]
+        steeper = None
+        if count_planes(target, [d.tag_id for d in kept]) >= 2:
+            steeper = _solve(kept, target, calibration, options, previous).pose
+        if steeper is not None:
+            # A steep tag joins only if the others' pose predicts its corners within its
+            # expected noise: a wrong corner there (1 px on a 25 px wide tag) would move
+            # the weighted pose by millimetres.
+            agreeing = _agreeing(steeper, [d for d in ours if d.tag_id in oblique],
+                                 corner_sigma_scale(pose, ours, target, options), target, calibration)
+            if not agreeing:
+                return PoseOutcome(steeper, None, f"tags {sorted(oblique)} left out: their corners disagree")
+            if len(agreeing) < len(oblique):
+                ours = kept + agreeing
+                pose = _solve(ours, target, calibration, options, previous).pose or steeper
+        weighted = _weigh_oblique(pose, ours, target, calibration, options)
+        if weighted.pose is None and steeper is not None:
+            # too uncertain with the steep tags, and the others still span two planes
+            return PoseOutcome(steeper, None, f"tags {sorted(oblique)} left out: {weighted.detail}")
+        return weighted
     if outcome.refusal is not Refusal.REPROJECTION or len(ours) < 3:
         return outcome
     # One bad quad (a grazing face, a partly hidden tag) should not cost the whole pose:

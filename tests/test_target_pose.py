@@ -166,6 +166,15 @@ def test_a_small_edge_on_tag_is_weighted_down_and_refuses_only_an_uncertain_pose
     strict = PoseOptions(max_position_sigma_m=0.001)
     refused = estimate_target_pose([view[0], view[2]], CUBE, CAMERA, strict)
     assert refused.pose is None and refused.refusal is Refusal.OBLIQUE and "sigma" in refused.detail
+    # A wrong corner on the steep tag (1 px, on a tag 25 px wide at 2 m) would move the
+    # weighted pose by 3 mm: the others' pose does not predict it, so the tag is left out.
+    truth = camera_on_sphere(75.0, 30.0, 2.0)
+    view = corner_view(truth, [0, 1, 4], sigma_px=0.05, seed=2)
+    wrong = view[0].corners.copy()
+    wrong[1] += (1.0, -1.0)
+    outcome = estimate_target_pose([TagDetection(0, wrong, 50.0, 0), view[1], view[2]], CUBE, CAMERA)
+    assert outcome.pose.tag_ids == (1, 4) and "disagree" in outcome.detail
+    assert np.linalg.norm(outcome.pose.T_world_camera.translation - truth.translation) < 0.001  # measured 0.21 mm
     # Close up, the same angle leaves a wide enough image: not weighted at all.
     near = corner_view(camera_on_sphere(72.0, 30.0, 0.8), [0, 4], sigma_px=0.05, seed=2)
     outcome = estimate_target_pose(near, CUBE, CAMERA)
