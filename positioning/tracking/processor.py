@@ -75,11 +75,15 @@ class TrackingProcessor:
         self.tracker.close()
 
     # ------------------------------------------------------------------ target
-    def _observe_target(self, image: np.ndarray, seq: int) -> tuple[TargetObservation | None, tuple[int, ...]]:
-        """The target, searched where the current pose predicts it; over the full frame
-        when there is no pose, when lost, or every ``target_search_every`` frames while it
-        is not found (so that it is found again even after drift)."""
-        prior = self.tracker.last_pose if self.tracker.initialised else self._last_target_pose
+    def _observe_target(self, image: np.ndarray, stamp_ns: int, seq: int
+                        ) -> tuple[TargetObservation | None, tuple[int, ...]]:
+        """The target, searched where the motion model puts it in this frame (the last
+        pose alone left a spinning camera's target outside its predicted regions); over the
+        full frame when there is no pose, when lost, or every ``target_search_every``
+        frames while it is not found (so that it is found again even after drift)."""
+        prior = self.tracker.predicted_pose(stamp_ns) if self.tracker.initialised else None
+        if prior is None:
+            prior = self.tracker.last_pose if self.tracker.initialised else self._last_target_pose
         full = (prior is None or self.tracker.lost
                 or self._frames_without_target + 1 >= self.options.target_search_every)
         observed = self.observer.observe(image, prior, seq, full_search=full)
@@ -111,7 +115,7 @@ class TrackingProcessor:
             return FrameResult(None, "bad_image", problem)
         guesses = self.tracker.predict_pixels(stamp_ns, self.front_end.ids, self.front_end.pixels)
         tracks = self.front_end.track(image, guesses)
-        observation, seen = self._observe_target(image, seq)
+        observation, seen = self._observe_target(image, stamp_ns, seq)
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
         result = out.result

@@ -216,6 +216,11 @@ class Tracker:
     def last_pose(self) -> Transform | None:
         return self._last
 
+    def predicted_pose(self, stamp_ns: int) -> Transform | None:
+        """Where the camera should be at ``stamp_ns`` (the motion model from the last pose;
+        None when lost or without a pose): where to look for the target."""
+        return self._predict(stamp_ns)
+
     # ------------------------------------------------------------------ initialisation
     def _initialising(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
                       trusted: TargetObservation | None) -> TrackerOutput:
