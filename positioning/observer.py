@@ -47,7 +47,6 @@ from positioning.target_pose import (
     TargetPose,
     estimate_target_pose,
     pose_covariance,
-    quad_width_px,
     single_plane_candidates,
     unique_target_detections,
 )
@@ -63,10 +62,8 @@ REGION_MARGIN_PX = 16
 MAX_PREDICTED_ANGLE_DEG = 87.0
 
 
-# A predicted tag this wide (pixels, across its foreshortened direction) is searched with
-# more decimation: its quad is still 30 px or more in the decimated image, and a third
-# cheaper to find. (By its longest side instead, a face seen at 75 deg was searched at
-# decimate 3 and lost: spin_on_axis lost the target for 7 frames and then the track.)
+# A predicted tag this large (pixels) is searched with more decimation: its quad is still
+# 30 px or more in the decimated image, and a third cheaper to find.
 LARGE_TAG_PX = 90.0
 LARGE_TAG_DECIMATE = 3.0
 
@@ -81,7 +78,7 @@ class TagRegion:
     tag_id: int
     roi: tuple[int, int, int, int]  # x0, y0, x1, y1 pixels
     quiet_zone: np.ndarray  # (4, 2) pixels: the tag and most of its white margin, predicted
-    size_px: float = 0.0  # the tag's predicted size: its narrow width in pixels (foreshortened)
+    size_px: float = 0.0  # the tag's predicted size (longest side of its pixel box)
 
 
 def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
@@ -120,7 +117,7 @@ def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_worl
         x0, y0 = max(int(x0), 0), max(int(y0), 0)
         x1, y1 = min(int(x1), calibration.width), min(int(y1), calibration.height)
         if x1 - x0 >= 16 and y1 - y0 >= 16:
-            regions.append(TagRegion(tag.tag_id, (x0, y0, x1, y1), quiet_zone, quad_width_px(pixels)))
+            regions.append(TagRegion(tag.tag_id, (x0, y0, x1, y1), quiet_zone, float((high - low).max())))
     return regions
 
 
