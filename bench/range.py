@@ -271,8 +271,6 @@ def run() -> str:
     with tempfile.TemporaryDirectory(prefix="cubeloc-bench-frames-") as tmp:
         rows = evaluate(Path(keep) if keep else Path(tmp))
     DOCS.mkdir(parents=True, exist_ok=True)
-    (DOCS / "range.json").write_text(json.dumps(
-        [{k: v for k, v in r.items() if k not in ("image", "calibration")} for r in rows], indent=None))
     text = (f"{len(rows)} views (two lenses x {len(DISTANCES)} distances x {len(ELEVATIONS)} elevations x "
             f"{len(AZIMUTHS)} azimuths), one frame each. Previous: commit {PREVIOUS_COMMIT}.\n\n"
             + success_table(rows) + "\nDetection recall (the target's tags):\n\n" + recall_table(rows))

@@ -6,8 +6,8 @@ Everything in daemon/ (and the tests) makes cameras through this module.
 
 from __future__ import annotations
 
-from drivers.registry import BACKENDS, make_camera, parse_source, register_backend
+from drivers.registry import make_camera, parse_source, register_backend
 
 register_backend("synthetic", "fakes.camera:open_synthetic_source")
 
-__all__ = ["BACKENDS", "make_camera", "parse_source"]
+__all__ = ["make_camera", "parse_source"]

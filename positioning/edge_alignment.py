@@ -24,10 +24,10 @@ import numpy as np
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_pose, project_with_jacobian
+from positioning.corner_pose import TargetPose
 from positioning.geometry import Transform
 from positioning.tag_bits import grid_to_world, tag_edges
 from positioning.target import Target
-from positioning.target_pose import TargetPose
 
 PROFILE_STEP_PX = 0.5
 MIN_PROFILE_SIGMA_PX = 0.01  # floor on the profile noise used for the covariance

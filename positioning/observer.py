@@ -30,6 +30,7 @@ import structlog
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project, project_pose
+from positioning.corner_pose import TargetPose, pose_covariance
 from positioning.detection import (
     FAMILY_CELLS,
     DetectorOptions,
@@ -44,9 +45,7 @@ from positioning.target import Target
 from positioning.target_pose import (
     PoseOptions,
     Refusal,
-    TargetPose,
     estimate_target_pose,
-    pose_covariance,
     single_plane_candidates,
     unique_target_detections,
 )
@@ -281,7 +280,7 @@ class TargetObserver:
                 if not extra:
                     continue
                 outcome = estimate_target_pose([seed, *extra], self.target, self.calibration, self.options,
-                                               self._prior)
+                                               self._prior, with_covariance=False)
                 if outcome.pose is not None:
                     self.last_search = "full+recovery"
                     return outcome, [seed, *extra]
@@ -331,7 +330,7 @@ class TargetObserver:
         steady = self.edge_alignment and self.last_search == "predicted"
         detections = found if steady else self._refine(image, found)
         outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
-                                       with_covariance=not self.edge_alignment)
+                                       with_covariance=False)
         if steady and (outcome.pose is None or len(outcome.pose.tag_ids) < len(detections)):
             # a tag left out or no pose from the library's corners (a blurred quad): the
             # refined corners drop a bad quad by its edges, not by its neighbours' pose
@@ -345,7 +344,7 @@ class TargetObserver:
             extra = self._complete(image, used, outcome.pose.T_world_camera)
             if extra:
                 completed = estimate_target_pose(used + extra, self.target, self.calibration, self.options,
-                                                 self._prior, with_covariance=not self.edge_alignment)
+                                                 self._prior, with_covariance=False)
                 if completed.pose is not None and len(completed.pose.tag_ids) > len(outcome.pose.tag_ids):
                     outcome, detections = completed, used + extra
         elif self.last_search == "full" and outcome.refusal in (Refusal.ONE_FACE, Refusal.REPROJECTION,
@@ -367,13 +366,10 @@ class TargetObserver:
         corners_px = np.concatenate([by_id[i].corners for i in pose.tag_ids]).astype(np.float64)
         if self.edge_alignment:
             aligned = refine_pose_on_edges(image, pose, self.target, self.calibration)
-            if aligned is pose:  # the alignment failed: the corners' pose stands
-                if pose.covariance is None:
-                    pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
-            else:
+            if aligned is not pose:  # else the alignment failed: the corners' pose stands
                 pose = aligned
                 corners_px = project_pose(pose.points_world, pose.rvec, pose.tvec, self.calibration)
-        elif pose.covariance is None:
+        if pose.covariance is None:  # computed once, for the pose returned (a weighted one has its own)
             pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
         if not self._scale_checked and pose.planes >= 3:
             self._warn_on_scale(detections, pose, seq)

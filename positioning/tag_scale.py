@@ -9,12 +9,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_pose
+from positioning.corner_pose import TargetPose
 from positioning.detection import TagDetection
 from positioning.target import Target
-from positioning.target_pose import TargetPose
 
 # The tag-size consistency check warns beyond this relative disagreement.
 SCALE_WARNING_FRACTION = 0.02
@@ -70,24 +71,13 @@ def check_tag_scale(
     pixels = np.concatenate([d.corners for d in ours]).astype(np.float64)
     T_camera_world = pose.T_world_camera.inverse()
 
-    # Gauss-Newton on (rvec, tvec, scale) from the pose and scale 1: the pose's Jacobian
-    # from the projection, the scale's by a central difference (0.12 ms where SciPy's LM
-    # took 0.6 ms, once per reset; measured on 3-face frames at 1-3 m: the same scale to 1e-7).
-    x = np.concatenate([T_camera_world.rvec(), T_camera_world.translation, [1.0]])
-    for _ in range(6):
+    def residuals(x: np.ndarray) -> np.ndarray:
         points = centers + x[6] * offsets
-        projected, jacobian = project_pose(points, x[:3], x[3:6], calibration, jacobian=True)
-        h = 1e-6
-        d_scale = (project_pose(centers + (x[6] + h) * offsets, x[:3], x[3:6], calibration)
-                   - project_pose(centers + (x[6] - h) * offsets, x[:3], x[3:6], calibration)) / (2 * h)
-        full = np.column_stack([jacobian, d_scale.ravel()])
-        step, *_ = np.linalg.lstsq(full, (pixels - projected).ravel(), rcond=None)
-        if not np.all(np.isfinite(step)):
-            return None
-        x = x + step
-        if abs(step[6]) < 1e-9:
-            break
-    scale = float(x[6])
+        return (project_pose(points, x[:3], x[3:6], calibration) - pixels).ravel()
+
+    start = np.concatenate([T_camera_world.rvec(), T_camera_world.translation, [1.0]])
+    fit = least_squares(residuals, start, method="lm", x_scale=np.concatenate([np.full(6, 0.01), [0.01]]))
+    scale = float(fit.x[6])
     configured = target.cube.side_m if target.cube is not None else None
     implied = configured / scale if configured is not None else None
     tag_m = target.cube.tag_size_m if target.cube is not None else None

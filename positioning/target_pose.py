@@ -3,9 +3,11 @@
 EPnP on all corners of the visible tags (distortion passed to the solver, so the corners
 are undistorted with the calibration), then Levenberg-Marquardt on the pixel residuals.
 No RANSAC: decoded ids are trustworthy, and a wrong pose shows in the residuals, which
-gate it. A single plane is ambiguous (two poses explain it almost equally well), so one
-face gives no pose unless allowed, and then only with a previous pose to choose between
-the two.
+gate it. Tags seen almost edge-on are weighted by their expected corner noise. A single
+tag is ambiguous (two poses explain it almost equally well): no pose unless allowed, and
+then only with a previous pose to choose between the two; a plane of several tags (a
+board) is posed when its two solutions are told apart. The shared pieces (the result
+record, LM, the covariance) are ``corner_pose``.
 
 Pure: arrays in, frozen dataclasses out.
 """
@@ -21,14 +23,19 @@ import numpy as np
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_pose
+from positioning.corner_pose import (
+    TargetPose,
+    corners_covariance,
+    covariance_from_jacobian,
+    make_pose,
+    refine_lm,
+)
 from positioning.detection import TagDetection
 from positioning.geometry import Transform
 from positioning.target import Target
 
 # Tags whose normals are closer than this lie on one plane (a face) for counting planes.
 SAME_PLANE_DEG = 10.0
-# Floor on the corner noise used for the covariance, so a perfect fit still has one.
-MIN_CORNER_SIGMA_PX = 0.02
 # One plane: IPPE's two solutions refined to within this of each other are one pose; a
 # second solution must fit worse than the first by a margin over this corner noise.
 SAME_PLANE_POSE_M = 0.001
@@ -73,21 +80,6 @@ class Refusal(str, enum.Enum):
 
 
 @dataclass(frozen=True)
-class TargetPose:
-    """A camera pose in the target (world) frame from one image."""
-
-    T_world_camera: Transform
-    planes: int
-    tag_ids: tuple[int, ...]
-    reproj_rms_px: float
-    covariance: np.ndarray | None  # (6, 6) x y z, rotation about world X Y Z (ROS order)
-    residuals_px: np.ndarray  # (4N, 2) observed minus predicted corners
-    rvec: np.ndarray | None = None  # the solver's T_camera_world, for the covariance
-    tvec: np.ndarray | None = None
-    points_world: np.ndarray | None = None  # (4N, 3) corners used
-
-
-@dataclass(frozen=True)
 class PoseOutcome:
     """A pose, or the reason there is none (``refusal``) with a human ``detail``."""
 
@@ -124,89 +116,6 @@ def unique_target_detections(detections: list[TagDetection], target: Target) -> 
     return [best[tag_id] for tag_id in sorted(best)]
 
 
-def _project(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
-    return project_pose(points_world, rvec, tvec, calibration)
-
-
-def _refine(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-            calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
-    # Column vectors: given (3,) arrays, OpenCV's binding refines a converted copy and
-    # returns the start unchanged (and spends 20x longer doing it).
-    rvec, tvec = cv2.solvePnPRefineLM(
-        points_world, pixels, calibration.camera_matrix, calibration.distortion,
-        np.asarray(rvec, np.float64).reshape(3, 1).copy(), np.asarray(tvec, np.float64).reshape(3, 1).copy(),
-        criteria,
-    )
-    return rvec.reshape(3), tvec.reshape(3)
-
-
-def _world_camera_vector(rvec: np.ndarray, tvec: np.ndarray, reference_rotation: np.ndarray) -> np.ndarray:
-    """(camera position in world, world-frame rotation vector from ``reference_rotation``).
-
-    The rotation vector is the first-order one, vee((D - D^T) / 2) of the small rotation
-    D = R_world_camera @ reference^T: exact enough for a numerical derivative, and cheap."""
-    rotation, _ = cv2.Rodrigues(rvec)  # R_camera_world
-    position = -rotation.T @ tvec
-    d = rotation.T @ reference_rotation.T
-    delta = 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
-    return np.concatenate([position, delta])
-
-
-def _covariance(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, residuals: np.ndarray,
-                calibration: CameraCalibration) -> np.ndarray:
-    """6x6 covariance of T_world_camera (ROS order) from the Jacobian at the solution.
-
-    Corner noise is estimated from the residuals (with a floor); the covariance of the
-    solver's (rvec, tvec) is then carried to (position, world rotation) numerically.
-    """
-    _, jacobian = project_pose(points_world, rvec, tvec, calibration, jacobian=True)
-    return covariance_from_jacobian(jacobian, residuals, rvec, tvec)
-
-
-def pose_covariance(pose: TargetPose, calibration: CameraCalibration) -> np.ndarray:
-    """The 6x6 covariance of a corners' pose (as ``estimate_target_pose`` attaches it)."""
-    return _covariance(pose.points_world, pose.rvec, pose.tvec, pose.residuals_px, calibration)
-
-
-def covariance_from_jacobian(jacobian: np.ndarray, residuals: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-                             min_sigma_px: float = MIN_CORNER_SIGMA_PX) -> np.ndarray:
-    """6x6 covariance of T_world_camera (ROS order) from any measurement Jacobian
-    (M, 6) with respect to the solver's (rvec, tvec), and the M residuals (pixels)."""
-    dof = max(residuals.size - 6, 1)
-    sigma2 = max(float(np.sum(residuals**2)) / dof, min_sigma_px**2)
-    cov_solver = sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
-    reference = cv2.Rodrigues(rvec)[0].T  # R_world_camera at the solution
-    x0 = np.concatenate([rvec, tvec])
-    step = 1e-7
-    g = np.empty((6, 6))
-    for k in range(6):
-        dx = np.zeros(6)
-        dx[k] = step
-        plus = _world_camera_vector((x0 + dx)[:3], (x0 + dx)[3:], reference)
-        minus = _world_camera_vector((x0 - dx)[:3], (x0 - dx)[3:], reference)
-        g[:, k] = (plus - minus) / (2 * step)
-    cov = g @ cov_solver @ g.T
-    return (cov + cov.T) / 2.0
-
-
-def _make_pose(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-               calibration: CameraCalibration, planes: int, tag_ids: tuple[int, ...]) -> TargetPose:
-    residuals = pixels - _project(points_world, rvec, tvec, calibration)
-    rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
-    return TargetPose(
-        T_world_camera=Transform.from_rvec_tvec(rvec, tvec).inverse(),
-        planes=planes,
-        tag_ids=tag_ids,
-        reproj_rms_px=rms,
-        covariance=None,  # filled in for the pose that is returned (with_covariance)
-        residuals_px=residuals,
-        rvec=rvec,
-        tvec=tvec,
-        points_world=points_world,
-    )
-
-
 def _one_face(points_world: np.ndarray, pixels: np.ndarray, calibration: CameraCalibration,
               previous: Transform) -> tuple[np.ndarray, np.ndarray] | None:
     """The IPPE solution of a single plane nearest the previous pose (there are two)."""
@@ -232,9 +141,9 @@ def plane_solutions(points_world: np.ndarray, pixels: np.ndarray,
         points_world, pixels, calibration.camera_matrix, calibration.distortion, flags=cv2.SOLVEPNP_IPPE)
     out = []
     for k in range(count):
-        rvec, tvec = _refine(points_world, pixels, np.asarray(rvecs[k], np.float64).reshape(3),
+        rvec, tvec = refine_lm(points_world, pixels, np.asarray(rvecs[k], np.float64).reshape(3),
                              np.asarray(tvecs[k], np.float64).reshape(3), calibration)
-        residuals = pixels - _project(points_world, rvec, tvec, calibration)
+        residuals = pixels - project_pose(points_world, rvec, tvec, calibration)
         out.append((float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))), rvec, tvec))
     return sorted(out, key=lambda s: s[0])
 
@@ -261,8 +170,8 @@ def _separated_plane(points_world: np.ndarray, pixels: np.ndarray, calibration: 
                 and np.degrees(a.rotation_angle_to(b)) <= SAME_PLANE_POSE_DEG)
         if not same and other_rms < options.min_plane_separation * max(rms, PLANE_NOISE_FLOOR_PX):
             return None
-    residuals = pixels - _project(points_world, rvec, tvec, calibration)
-    covariance = _covariance(points_world, rvec, tvec, residuals, calibration)
+    residuals = pixels - project_pose(points_world, rvec, tvec, calibration)
+    covariance = corners_covariance(points_world, rvec, tvec, residuals, calibration)
     sigma = float(np.sqrt(max(np.linalg.eigvalsh(covariance[:3, :3]).max(), 0.0)))
     # Where the two solutions meet (a frontal view) the valley between them is flat and
     # the covariance too small: measured on a single cube face at 2 m, 11-17 mm off with
@@ -280,12 +189,6 @@ def quad_width_px(corners: np.ndarray) -> float:
     area = 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
     longest = float(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1).max())
     return area / longest if longest > 0 else 0.0
-
-
-def oblique_tags(pose: TargetPose, detections: list[TagDetection], target: Target, options: PoseOptions) -> set[int]:
-    """Ids of the pose's tags seen more than ``max_tag_angle_deg`` from their normal whose
-    image is also narrower than ``min_oblique_edge_px`` (their corners are poor)."""
-    return {tag_id for tag_id, scale in corner_sigma_scale(pose, detections, target, options).items() if scale > 1.0}
 
 
 def corner_sigma_scale(pose: TargetPose, detections: list[TagDetection], target: Target,
@@ -316,7 +219,7 @@ def _agreeing(pose: TargetPose, steep: list[TagDetection], scale: dict[int, floa
     noise = max(pose.reproj_rms_px, PLANE_NOISE_FLOOR_PX)
     out = []
     for detection in steep:
-        predicted = _project(target.tag(detection.tag_id).corners, pose.rvec, pose.tvec, calibration)
+        predicted = project_pose(target.tag(detection.tag_id).corners, pose.rvec, pose.tvec, calibration)
         rms = float(np.sqrt(np.mean(np.sum((detection.corners - predicted) ** 2, axis=1))))
         if rms <= 3.0 * scale.get(detection.tag_id, 1.0) * noise:
             out.append(detection)
@@ -347,19 +250,18 @@ def _weighted_refine(pose: TargetPose, observed: np.ndarray, weights: np.ndarray
     return x[:3], x[3:], jacobian, residuals
 
 
-def _weigh_oblique(pose: TargetPose, ours: list[TagDetection], target: Target, calibration: CameraCalibration,
+def _weigh_oblique(pose: TargetPose, scale: dict[int, float], calibration: CameraCalibration,
                    options: PoseOptions) -> PoseOutcome:
-    """The pose with each tag's corners weighted by ``corner_sigma_scale``, its covariance
-    from the whitened Jacobian; refused (``OBLIQUE``) when that covariance puts the camera
-    position beyond ``options.max_position_sigma_m`` (largest axis)."""
-    scale = corner_sigma_scale(pose, ours, target, options)
-    oblique = sorted(t for t, v in scale.items() if v > 1.0)
+    """The pose with each tag's corners weighted by its ``scale`` (``corner_sigma_scale``),
+    its covariance from the whitened Jacobian; refused (``OBLIQUE``) when that covariance
+    puts the camera position beyond ``options.max_position_sigma_m`` (largest axis)."""
+    oblique = sorted(t for t in pose.tag_ids if scale[t] > 1.0)
     weights = np.repeat([1.0 / scale[t] for t in pose.tag_ids], 4)
-    observed = pose.residuals_px + _project(pose.points_world, pose.rvec, pose.tvec, calibration)
+    observed = pose.residuals_px + project_pose(pose.points_world, pose.rvec, pose.tvec, calibration)
     rvec, tvec, jacobian, whitened = _weighted_refine(pose, observed, weights, calibration)
     if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
         return PoseOutcome(None, Refusal.SOLVER, "the weighted refinement diverged")
-    weighted = _make_pose(pose.points_world, observed, rvec, tvec, calibration, pose.planes, pose.tag_ids)
+    weighted = make_pose(pose.points_world, observed, rvec, tvec, calibration, pose.planes, pose.tag_ids)
     covariance = covariance_from_jacobian(jacobian, whitened.reshape(-1, 2), rvec, tvec)
     sigma = float(np.sqrt(max(np.linalg.eigvalsh(covariance[:3, :3]).max(), 0.0)))
     if sigma > options.max_position_sigma_m:
@@ -368,6 +270,31 @@ def _weigh_oblique(pose: TargetPose, ours: list[TagDetection], target: Target, c
                            f"{sigma * 1000:.1f} mm exceeds {options.max_position_sigma_m * 1000:.1f} mm")
     return PoseOutcome(dataclasses.replace(weighted, covariance=covariance), None,
                        f"tags {oblique} weighted down: seen obliquely")
+
+
+def _with_oblique(pose: TargetPose, ours: list[TagDetection], oblique: set[int], scale: dict[int, float],
+                  target: Target, calibration: CameraCalibration, options: PoseOptions,
+                  previous: Transform | None) -> PoseOutcome:
+    """The pose when some of its tags are ``oblique``: weighted (``_weigh_oblique``), and
+    where the others span two planes on their own, checked against their pose first."""
+    kept = [d for d in ours if d.tag_id not in oblique]
+    steeper = None
+    if count_planes(target, [d.tag_id for d in kept]) >= 2:
+        steeper = _solve(kept, target, calibration, options, previous).pose
+    if steeper is not None:
+        # A steep tag joins only if the others' pose predicts its corners within its
+        # expected noise: a wrong corner there (1 px on a 25 px wide tag) would move the
+        # weighted pose by millimetres.
+        agreeing = _agreeing(steeper, [d for d in ours if d.tag_id in oblique], scale, target, calibration)
+        if not agreeing:
+            return PoseOutcome(steeper, None, f"tags {sorted(oblique)} left out: their corners disagree")
+        if len(agreeing) < len(oblique):
+            pose = _solve(kept + agreeing, target, calibration, options, previous).pose or steeper
+    weighted = _weigh_oblique(pose, scale, calibration, options)
+    if weighted.pose is None and steeper is not None:
+        # too uncertain with the steep tags, and the others still span two planes
+        return PoseOutcome(steeper, None, f"tags {sorted(oblique)} left out: {weighted.detail}")
+    return weighted
 
 
 def single_plane_candidates(detections: list[TagDetection], target: Target,
@@ -406,7 +333,7 @@ def estimate_target_pose(
     if outcome.pose is None or not with_covariance or outcome.pose.covariance is not None:
         return outcome  # a weighted pose (oblique tags) carries its covariance already
     pose = outcome.pose
-    covariance = _covariance(pose.points_world, pose.rvec, pose.tvec, pose.residuals_px, calibration)
+    covariance = corners_covariance(pose.points_world, pose.rvec, pose.tvec, pose.residuals_px, calibration)
     return dataclasses.replace(outcome, pose=dataclasses.replace(pose, covariance=covariance))
 
 
@@ -423,30 +350,11 @@ def _estimate(
         return PoseOutcome(None, Refusal.NO_TARGET, "no tag of the target in view")
     outcome = _solve(ours, target, calibration, options, previous)
     if outcome.pose is not None:
-        oblique = oblique_tags(outcome.pose, ours, target, options) if outcome.pose.planes >= 2 else set()
+        scale = corner_sigma_scale(outcome.pose, ours, target, options) if outcome.pose.planes >= 2 else {}
+        oblique = {t for t, v in scale.items() if v > 1.0}
         if not oblique:
             return outcome
-        pose = outcome.pose
-        kept = [d for d in ours if d.tag_id not in oblique]
-        steeper = None
-        if count_planes(target, [d.tag_id for d in kept]) >= 2:
-            steeper = _solve(kept, target, calibration, options, previous).pose
-        if steeper is not None:
-            # A steep tag joins only if the others' pose predicts its corners within its
-            # expected noise: a wrong corner there (1 px on a 25 px wide tag) would move
-            # the weighted pose by millimetres.
-            agreeing = _agreeing(steeper, [d for d in ours if d.tag_id in oblique],
-                                 corner_sigma_scale(pose, ours, target, options), target, calibration)
-            if not agreeing:
-                return PoseOutcome(steeper, None, f"tags {sorted(oblique)} left out: their corners disagree")
-            if len(agreeing) < len(oblique):
-                ours = kept + agreeing
-                pose = _solve(ours, target, calibration, options, previous).pose or steeper
-        weighted = _weigh_oblique(pose, ours, target, calibration, options)
-        if weighted.pose is None and steeper is not None:
-            # too uncertain with the steep tags, and the others still span two planes
-            return PoseOutcome(steeper, None, f"tags {sorted(oblique)} left out: {weighted.detail}")
-        return weighted
+        return _with_oblique(outcome.pose, ours, oblique, scale, target, calibration, options, previous)
     if outcome.refusal is not Refusal.REPROJECTION or len(ours) < 3:
         return outcome
     # One bad quad (a grazing face, a partly hidden tag) should not cost the whole pose:
@@ -485,7 +393,7 @@ def _solve(ours: list[TagDetection], target: Target, calibration: CameraCalibrat
             solution = _one_face(points_world, pixels, calibration, previous)
             if solution is None:
                 return PoseOutcome(None, Refusal.SOLVER, "no pose fits the single face")
-            rvec, tvec = _refine(points_world, pixels, *solution, calibration)
+            rvec, tvec = refine_lm(points_world, pixels, *solution, calibration)
     else:
         if planes == 2 and not options.allow_two_faces:
             return PoseOutcome(None, Refusal.TWO_FACES, "two faces in view and two-face poses are disabled")
@@ -494,13 +402,13 @@ def _solve(ours: list[TagDetection], target: Target, calibration: CameraCalibrat
         )
         if not ok or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
             return PoseOutcome(None, Refusal.SOLVER, "EPnP found no pose")
-        rvec, tvec = _refine(points_world, pixels, rvec.reshape(3), tvec.reshape(3), calibration)
+        rvec, tvec = refine_lm(points_world, pixels, rvec.reshape(3), tvec.reshape(3), calibration)
 
     if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
         return PoseOutcome(None, Refusal.SOLVER, "the refinement diverged")
     if np.any(Transform.from_rvec_tvec(rvec, tvec).apply(points_world)[:, 2] <= 0):
         return PoseOutcome(None, Refusal.SOLVER, "the pose puts the target behind the camera")
-    pose = _make_pose(points_world, pixels, rvec, tvec, calibration, planes, tag_ids)
+    pose = make_pose(points_world, pixels, rvec, tvec, calibration, planes, tag_ids)
     if not pose.reproj_rms_px <= options.max_reproj_rms_px:
         return PoseOutcome(
             None, Refusal.REPROJECTION,

@@ -1,16 +1,13 @@
-"""The one target observer: both modes see the target the same way, its search finds what
-the library finds, and the camera model undistorts what it projects. Rendered, seeded."""
+"""The one target observer: both modes see the target the same way, and its search finds
+what the library finds. Rendered, seeded."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 import pytest
 
 from calib.camera_info import paper_camera
 from fakes import render_view
-from positioning.camera_model import distort, project, project_with_jacobian, undistort
 from positioning.detection import TagDetector
 from positioning.geometry import look_at
 from positioning.range_map import camera_on_sphere
@@ -59,13 +56,3 @@ def test_the_search_finds_every_tag_the_library_finds_at_decimate_2(azimuth):
         processor.reset()
         seen = set(processor.process(image, 0, 0).tags_seen)
         assert library <= seen, (azimuth + offset, library, seen)
-
-
-def test_undistort_inverts_the_projection_over_the_whole_image_on_a_strong_lens():
-    strong = dataclasses.replace(CAMERA, distortion=np.array([-0.3, 0.12, 0.001, -0.001, -0.02]))
-    u, v = np.meshgrid(np.linspace(0, 1279, 17), np.linspace(0, 1023, 13))
-    pixels = np.column_stack([u.ravel(), v.ravel()])
-    assert np.abs(distort(undistort(pixels, strong), strong) - pixels).max() < 1e-6
-    points = np.column_stack([undistort(pixels, strong), np.ones(len(pixels))]) * 2.0
-    fast, _ = project_with_jacobian(points, strong)
-    assert np.abs(fast - project(points, strong)).max() < 1e-6

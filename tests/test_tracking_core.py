@@ -209,13 +209,6 @@ def test_triangulation_rejects_points_behind_and_without_parallax():
     assert np.allclose(result.points_world[0], points[0], atol=1e-9)
 
 
-def test_undistort_inverts_the_camera_model():
-    rng = np.random.default_rng(0)
-    xn = rng.uniform(-0.35, 0.35, (50, 2))
-    pixels = project(np.column_stack([xn, np.ones(50)]), CAL)
-    assert np.abs(undistort(pixels, CAL) - xn).max() < 1e-9
-
-
 # ---------------------------------------------------------------------------- patch alignment
 def test_patches_are_re_aligned_through_an_affine_warp_and_a_change_of_exposure():
     """A patch seen 15 % larger, sheared and turned, under another gain and offset: the

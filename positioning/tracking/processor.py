@@ -81,7 +81,7 @@ class TrackingProcessor:
         pose alone left a spinning camera's target outside its predicted regions); over the
         full frame when there is no pose, when lost, or every ``target_search_every``
         frames while it is not found (so that it is found again even after drift)."""
-        prior = self.tracker.predicted_pose(stamp_ns) if self.tracker.initialised else None
+        prior = self.tracker.predict(stamp_ns) if self.tracker.initialised else None
         if prior is None:
             prior = self.tracker.last_pose if self.tracker.initialised else self._last_target_pose
         full = (prior is None or self.tracker.lost

@@ -110,7 +110,7 @@ class Tracker:
         if not self.initialised:
             return self._initialising(stamp_ns, tracks, xn, trusted)
 
-        prediction = self._predict(stamp_ns)
+        prediction = self.predict(stamp_ns)
         tracked, inliers, drop, rms, covariance = self._pnp(tracks, xn, prediction)
         held = None
         if tracked is None and trusted is None and prediction is not None:
@@ -216,18 +216,13 @@ class Tracker:
     def last_pose(self) -> Transform | None:
         return self._last
 
-    def predicted_pose(self, stamp_ns: int) -> Transform | None:
-        """Where the camera should be at ``stamp_ns`` (the motion model from the last pose;
-        None when lost or without a pose): where to look for the target."""
-        return self._predict(stamp_ns)
-
     # ------------------------------------------------------------------ initialisation
     def _initialising(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
                       trusted: TargetObservation | None) -> TrackerOutput:
         empty = np.zeros(0, np.int64)
         if trusted is None:
             status = InitStatus.NO_TARGET_POSE
-            prediction = self._predict(stamp_ns)
+            prediction = self.predict(stamp_ns)
             held = None if prediction is None else self._hold.hold(stamp_ns, self._last, self._last_stamp,
                                                                     prediction, tracks, xn, self.map)
             if held is None:
@@ -280,9 +275,10 @@ class Tracker:
         return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
 
     # ------------------------------------------------------------------ tracking
-    def _predict(self, stamp_ns: int) -> Transform | None:
+    def predict(self, stamp_ns: int) -> Transform | None:
         """The pose at ``stamp_ns`` by the constant-velocity motion model (the last pose
-        when the velocity is unknown or the gap too long to extrapolate)."""
+        when the velocity is unknown or the gap too long to extrapolate; None when lost
+        or without a pose): where tracks and the target are looked for."""
         if self._last is None or self.lost:
             return None
         dt = (stamp_ns - self._last_stamp) / 1e9
@@ -310,7 +306,7 @@ class Tracker:
         a map point are projected from it; the others as if at the map's median depth."""
         if self._last_stamp != self._frame_stamp:
             return None  # the last pose is older than the tracks' frame (no pose there)
-        prediction = self._predict(stamp_ns)
+        prediction = self.predict(stamp_ns)
         if prediction is None or self._velocity is None or len(ids) == 0:
             return None
         T_next_last = prediction.inverse() @ self._last
