@@ -209,6 +209,52 @@ def test_triangulation_rejects_points_behind_and_without_parallax():
     assert np.allclose(result.points_world[0], points[0], atol=1e-9)
 
 
+def test_map_triangulates_only_across_baselines_that_outweigh_the_poses_own_errors():
+    """The oldest keyframe 20 mm from the newest, the next 80 mm: points come from the
+    oldest when every pose is sure to 2 mm; from the next when the oldest is 20 mm
+    uncertain (its errors, not the parallax, would set the depths: the map's scale); none
+    when the newest itself is 100 mm uncertain."""
+    k = TrackerOptions().triangulation_min_baseline_sigmas
+    points = np.array([[0.1 * j, 0.05 * j, 1.0 + 0.02 * j] for j in range(-5, 6)])
+    ids = np.arange(len(points), dtype=np.int64)
+
+    def seen_from(x: float) -> np.ndarray:
+        return (points - [x, 0, 0])[:, :2] / (points - [x, 0, 0])[:, 2:]
+
+    for sigmas, expected_birth in (((0.002, 0.002, 0.002), 0), ((0.020, 0.002, 0.002), 1),
+                                   ((0.002, 0.002, 0.100), None)):
+        world = Map()
+        frames = [world.add_keyframe(i, Transform(np.eye(3), np.array([x, 0.0, 0.0])), ids, seen_from(x))
+                  for i, x in enumerate((0.04, -0.02, 0.06))]
+        for kf, sigma in zip(frames, sigmas, strict=True):
+            kf.position_sigma_m = sigma
+        world.triangulate(frames[2], CAL.fx, min_parallax_deg=0.5, max_reproj_px=1.0, min_baseline_sigmas=k)
+        if expected_birth is None:
+            assert not world.points, sigmas
+        else:
+            assert len(world.points) == len(points), sigmas
+            assert set(world.point_birth.values()) == {frames[expected_birth].kf_id}, sigmas
+            assert np.allclose(np.array([world.points[int(t)] for t in ids]), points, atol=1e-6)
+
+
+def test_a_relocalisation_keeps_the_motion_model():
+    """A relocalisation corrects where the camera is, not how it moves: the next frame is
+    still predicted one step on (without it KLT starts unguided; at 4.5 deg a frame
+    spin_on_axis lost 3/4 of its tracks and then the track)."""
+    poses = trolley_path(50)
+    tracker = Tracker(CAL, SYNC)
+    source = SyntheticTracks(room_points(12), seed=13, noise_px=0.0)
+    run(tracker, source, poses[:21], lambda i: i < 12)
+    before = tracker.predict(21 * 100_000_000)
+    step = tracker.last_pose.inverse() @ before
+    # it is moving and turning (measured: 52 mm and 0.4 deg a frame)
+    assert np.linalg.norm(step.translation) > 0.02 and np.degrees(step.rotation_angle_to(Transform.identity())) > 0.2
+    corrected = Transform(poses[20].rotation, poses[20].translation + [0.004, 0.0, 0.0])
+    tracker.relocalised(20 * 100_000_000, corrected, source.tracks(poses[20]), np.eye(6) * 1e-6)
+    after = tracker.predict(21 * 100_000_000)
+    assert np.allclose((corrected @ step).matrix(), after.matrix(), atol=1e-9)
+
+
 # ---------------------------------------------------------------------------- patch alignment
 def test_patches_are_re_aligned_through_an_affine_warp_and_a_change_of_exposure():
     """A patch seen 15 % larger, sheared and turned, under another gain and offset: the

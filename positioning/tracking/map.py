@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from positioning.geometry import Transform
+from positioning.tracking.twoview import triangulate
 
 
 @dataclass
@@ -31,6 +32,7 @@ class Keyframe:
     # For relocalisation: ORB descriptors of this keyframe's map points
     descriptor_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,)
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # (K, 32)
+    position_sigma_m: float = 0.0  # its pose's own (target, PnP or match), not the drift
 
     def __post_init__(self) -> None:
         self._index = {int(t): i for i, t in enumerate(self.track_ids)}
@@ -97,6 +99,35 @@ class Map:
 
     def observers(self, track_id: int) -> list[Keyframe]:
         return [kf for kf in self.keyframes.values() if kf.observation(track_id) is not None]
+
+    def triangulate(self, kf: Keyframe, fx: float, min_parallax_deg: float, max_reproj_px: float,
+                    min_baseline_sigmas: float) -> None:
+        """New points for the keyframe's tracks that have none, each against the oldest
+        keyframe that saw it (the longest baseline the track offers) whose baseline to this
+        one is ``min_baseline_sigmas`` times the two poses' own standard deviations (below
+        it the poses' errors, not the parallax, would set the depths and so the map's
+        scale), where the two rays meet at ``min_parallax_deg`` or more."""
+        pending: dict[int, list[int]] = {}
+        for i, t in enumerate(kf.track_ids):
+            if int(t) in self.points:
+                continue
+            for other in self.keyframes.values():
+                if other.kf_id == kf.kf_id:
+                    break
+                if other.observation(int(t)) is None:
+                    continue
+                baseline = np.linalg.norm(other.T_world_camera.translation - kf.T_world_camera.translation)
+                if baseline >= min_baseline_sigmas * np.hypot(other.position_sigma_m, kf.position_sigma_m):
+                    pending.setdefault(other.kf_id, []).append(i)
+                    break
+        for first_id, rows in pending.items():
+            first = self.keyframes[first_id]
+            ids = kf.track_ids[rows]
+            xa = np.array([first.observation(int(t)) for t in ids])
+            result = triangulate(first.T_world_camera, kf.T_world_camera, xa, kf.xn[rows], fx, max_reproj_px,
+                                 min_parallax_deg)
+            for track_id, point in zip(ids[result.good], result.points_world[result.good], strict=True):
+                self.add_point(int(track_id), point, kf.kf_id if kf.anchored else first_id)
 
     def first_observer(self, track_id: int) -> Keyframe | None:
         for kf in self.keyframes.values():

@@ -116,6 +116,14 @@ class TrackerOptions:
     triangulation_starving_parallax_deg: float = 0.3
     triangulation_starving_points: int = 40
     triangulation_max_reproj_px: float = 2.0
+    # Two keyframes triangulate only when their baseline is at least this many times the
+    # combined standard deviation of their poses (each pose's own fit: target, PnP or
+    # relocalisation match), else against an older keyframe of the track that passes:
+    # blank_wall's camera, turning on the spot after a relocalisation, triangulated on
+    # 5-30 mm baselines between poses 9-21 mm uncertain and the map's scale came out 30 %
+    # wrong (0.7 m off within 6 s; 95 mm with this). 3 sigmas left a map short of points
+    # after a 25-point relocalisation (tests/test_tracking_images.py: 67 mm off, held).
+    triangulation_min_baseline_sigmas: float = 1.0
     max_keyframes: int = 40  # older keyframes and the points only they saw are culled
     # target
     anchor_max_reproj_px: float = 0.25  # a target pose fitting worse (a grazing face) anchors no keyframe

@@ -48,10 +48,14 @@ from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import fit_pose
-from positioning.tracking.twoview import triangulate
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
+
+
+def _sigma(covariance: np.ndarray | None) -> float:
+    """The position's standard deviation (root of the covariance's trace), 0 without one."""
+    return 0.0 if covariance is None else float(np.sqrt(max(np.trace(np.asarray(covariance)[:3, :3]), 0.0)))
 
 
 class Tracker:
@@ -84,6 +88,7 @@ class Tracker:
         self._frame_target: TargetObservation | None = None
         self._frame_stamp = 0
         self._frame_keyframe = None
+        self._frame_sigma = 0.0  # this frame's pose: its own position standard deviation
         self._reference_target: TargetObservation | None = None
         self._kf_points_at_insert = 0
         self._frames_since_keyframe = 0
@@ -158,6 +163,7 @@ class Tracker:
         if held is None:
             self._hold.end()
         self._hold.rebase(pose if held is None else None, tracks.ids, xn)
+        self._frame_sigma = _sigma(trusted.covariance if trusted is not None else covariance)
         self._update_motion(pose, stamp_ns)
         self._frame_pose = pose
         if held is not None:
@@ -201,13 +207,18 @@ class Tracker:
         fresh corners that ``add_tracks`` brings next can be triangulated against it.
         Returns the pose's covariance: the match's (``covariance``) plus the drift."""
         self._drift.relocalised(covariance)
+        match = covariance
         covariance = self._drift.covariance(self._last, pose, covariance)
         self._hold.end()
         self.lost = False
-        self._last, self._last_stamp, self._velocity = pose, stamp_ns, None
+        # the velocity stays: a relocalisation corrects where the camera is, not how it
+        # moves (spin_on_axis, 4.5 deg a frame: without it the next frame's unguided KLT
+        # lost 3/4 of the tracks, three relocalisations in a row and then the track)
+        self._last, self._last_stamp = pose, stamp_ns
         self._frame_pose, self._frame_stamp = pose, stamp_ns
         self._frame_tracks, self._frame_xn = tracks, undistort(tracks.pixels, self.calibration)
         self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
+        self._frame_keyframe.position_sigma_m = _sigma(match)
         self._frames_since_keyframe = 0
         self._kf_points_at_insert = len(tracks.ids)
         return covariance
@@ -428,35 +439,16 @@ class Tracker:
         target_world = anchor.corners_world if anchor is not None else None
         target_xn = undistort(anchor.corners_px, self.calibration) if anchor is not None else None
         kf = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn, target_world, target_xn)
+        kf.position_sigma_m = self._frame_sigma
         self._frame_keyframe = kf
         self._frames_since_keyframe = 0
-        self._triangulate(kf, o.triangulation_starving_parallax_deg if inliers < o.triangulation_starving_points
-                          else o.triangulation_min_parallax_deg)
+        self.map.triangulate(kf, self.fx, o.triangulation_starving_parallax_deg
+                             if inliers < o.triangulation_starving_points else o.triangulation_min_parallax_deg,
+                             o.triangulation_max_reproj_px, o.triangulation_min_baseline_sigmas)
         self._kf_points_at_insert = sum(1 for t in kf.track_ids if int(t) in self.map.points)
         self.map.cull(o.max_keyframes, {int(t) for t in tracks.ids})
         self._schedule_bundle()
         return True
-
-    def _triangulate(self, kf, min_parallax_deg: float) -> None:
-        """New points for the keyframe's tracks that have none, each against the first
-        keyframe that saw it (the longest baseline the track offers), where the two rays
-        meet at ``min_parallax_deg`` or more."""
-        o = self.options
-        pending: dict[int, list[int]] = {}
-        for i, t in enumerate(kf.track_ids):
-            if int(t) in self.map.points:
-                continue
-            first = self.map.first_observer(int(t))
-            if first is not None and first.kf_id != kf.kf_id:
-                pending.setdefault(first.kf_id, []).append(i)
-        for first_id, rows in pending.items():
-            first = self.map.keyframes[first_id]
-            ids = kf.track_ids[rows]
-            xa = np.array([first.observation(int(t)) for t in ids])
-            result = triangulate(first.T_world_camera, kf.T_world_camera, xa, kf.xn[rows], self.fx,
-                                 o.triangulation_max_reproj_px, min_parallax_deg)
-            for track_id, point in zip(ids[result.good], result.points_world[result.good], strict=True):
-                self.map.add_point(int(track_id), point, kf.kf_id if kf.anchored else first_id)
 
     # ------------------------------------------------------------------ bundle adjustment
     def _schedule_bundle(self) -> None:
