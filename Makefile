@@ -13,7 +13,10 @@ STAMPS := .make
 # Debian packages: the Aravis typelib for the camera backend, the build deps of PyGObject,
 # libusb for pyusb, and aravis-tools (arv-tool, arv-fake-gv-camera) for technicians.
 DEB_PACKAGES := gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev \
-                pkg-config libusb-1.0-0 python3-venv python3-dev gcc
+                pkg-config libusb-1.0-0 python3-venv python3-dev gcc iproute2
+# Tests, benchmarks and the soak run in a network namespace with only loopback (Aravis'
+# GigE Vision discovery broadcasts on every interface; nothing may leave the machine).
+LOOPBACK := scripts/loopback-only
 # pytest workers: the suite runs on both cores of the CI machine
 TEST_WORKERS ?= 2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
@@ -46,11 +49,11 @@ lint: install
 	$(BIN)/ruff check .
 
 test: lint
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake'
-	$(BIN)/python -m pytest -q -m gv_fake
+	$(LOOPBACK) $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake'
+	$(LOOPBACK) $(BIN)/python -m pytest -q -m gv_fake
 
 bench: install
-	$(BIN)/python -m bench
+	$(LOOPBACK) $(BIN)/python -m bench
 
 demo: install
 	$(BIN)/cubeloc demo
@@ -58,7 +61,7 @@ demo: install
 # The daemon for 30 minutes on the pre-rendered synthetic camera at full rate: RSS, threads,
 # fds, frame rate and every pose checked; writes docs/soak.md. Not part of `make test`.
 soak: install
-	nice $(BIN)/python -m bench.soak --minutes 30
+	$(LOOPBACK) nice $(BIN)/python -m bench.soak --minutes 30
 
 clean:
 	rm -rf $(STAMPS) $(VENV) .pytest_cache .ruff_cache

@@ -93,6 +93,15 @@ def list_aravis_devices(include_fake: bool = False) -> list[DeviceInfo]:
     return devices
 
 
+def camera_lock_key(device: DeviceInfo) -> str:
+    """The one lock name of a camera however it is reached: vendor-model-serial when the
+    serial is known (discovery calls the fake "Aravis-Fake-GV01"; the same camera opened by
+    IP address says its device id is "GV01"), else the id it was opened by."""
+    if device.serial:
+        return "-".join(part for part in (device.vendor, device.model, device.serial) if part)
+    return device.device_id.removeprefix("aravis:")
+
+
 def _release(objects: list) -> None:
     """Drop the last references (in a background thread: see AravisCamera._teardown)."""
     objects.clear()
@@ -154,7 +163,7 @@ class AravisCamera(CameraBase):
         aravis_id = info.device_id.removeprefix("aravis:")
         try:
             if info.serial:  # discovered: lock before anything touches the camera
-                self._take_lock(aravis_id)
+                self._take_lock(camera_lock_key(info))
             try:
                 self._camera = Aravis.Camera.new(aravis_id)
             except GLib.Error as exc:
@@ -164,8 +173,7 @@ class AravisCamera(CameraBase):
                 # Opened by IP without discovery: name it as discovery would, then lock under
                 # that name (a second GigE opener only gets read access: nothing disturbed).
                 info = self._describe_opened(info)
-                aravis_id = info.device_id.removeprefix("aravis:")
-                self._take_lock(aravis_id)
+                self._take_lock(camera_lock_key(info))
             self._info = info
             self._features = probe_features(self._camera.get_device(), aravis_id)
             self._clock.reset()  # a reconnected camera may have restarted its clock
@@ -184,12 +192,12 @@ class AravisCamera(CameraBase):
         log.info("camera open", camera=aravis_id, vendor=info.vendor, model=info.model,
                  transport=info.transport, features={k: v for k, v in self._features.names.items() if v})
 
-    def _take_lock(self, aravis_id: str) -> None:
-        if self._lock is not None and self._lock.camera_key != aravis_id:
+    def _take_lock(self, key: str) -> None:
+        if self._lock is not None and self._lock.camera_key != key:
             self._lock.release()  # the device turned out to have another name
             self._lock = None
         if self._lock is None:
-            lock = CameraLock(aravis_id)
+            lock = CameraLock(key)
             lock.acquire()  # CameraBusy naming the holder
             self._lock = lock
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -43,7 +44,33 @@ def _starts_gv_fake(path: Path, cache: dict[Path, bool] = {}) -> bool:  # noqa: 
     return cache[path]
 
 
+def _touches_aravis(path: Path, cache: dict[Path, bool] = {}) -> bool:  # noqa: B006 - a per-session memo
+    if path not in cache:
+        text = path.read_text(encoding="utf-8") if path.suffix == ".py" else ""
+        cache[path] = any(word in text for word in ("aravis", "Aravis", *GV_FAKE_MARKERS))
+    return cache[path]
+
+
+def non_loopback_interfaces() -> list[str]:
+    return [name for _, name in socket.if_nameindex() if name != "lo"]
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        if _starts_gv_fake(Path(str(item.fspath))):
+        path = Path(str(item.fspath))
+        if _starts_gv_fake(path):
             item.add_marker(pytest.mark.gv_fake)
+        if _touches_aravis(path):
+            item.add_marker(pytest.mark.loopback_only)
+
+
+@pytest.fixture(autouse=True)
+def _loopback_only(request):
+    """Aravis' discovery broadcasts on every interface: a test of a module that touches
+    Aravis runs only where loopback is the one interface (``make test`` sees to it)."""
+    if request.node.get_closest_marker("loopback_only") is not None:
+        others = non_loopback_interfaces()
+        if others:
+            pytest.fail(f"this test touches Aravis, whose discovery broadcasts on {', '.join(others)}: run it "
+                        "in a loopback-only network namespace (make test, or scripts/loopback-only "
+                        ".venv/bin/python -m pytest ...)", pytrace=False)

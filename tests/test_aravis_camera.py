@@ -37,6 +37,21 @@ def gv_fake():
     fake.stop()
 
 
+def test_the_gige_tests_cannot_see_or_reach_a_network_beyond_loopback(gv_fake):
+    """make test runs these in a network namespace with loopback alone: Aravis' discovery
+    broadcasts on every interface it sees, and here it sees only lo; a broadcast or a
+    packet to another host cannot leave."""
+    import socket
+
+    assert [name for _, name in socket.if_nameindex()] == ["lo"]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        for destination in (("255.255.255.255", 3956), ("192.0.2.1", 3956)):  # GVCP discovery, TEST-NET-1
+            with pytest.raises(OSError, match="unreachable"):
+                probe.sendto(b"\x42\x11\x00\x02\x00\x00\x00\x01", destination)
+    assert gv_fake.process.poll() is None  # and the fake camera runs there, on lo
+
+
 def grab(camera, n, timeout_s=2.0):
     return [camera.next_frame(timeout_s) for _ in range(n)]
 
@@ -118,6 +133,30 @@ def test_second_opener_is_told_who_holds_the_camera(gv_fake):
         with pytest.raises(CameraBusy, match=rf"camera {gv_fake.device_id} is held by pid {os.getpid()}"):
             AravisCamera("GV01", CameraSettings()).open()
         first.next_frame(2.0)  # the holder is undisturbed
+
+
+def test_the_lock_keeps_its_name_when_a_reconnect_reaches_the_camera_by_address(gv_fake, monkeypatch):
+    """The daemon makes a new camera object on each reconnect; a camera just plugged back
+    in may miss the discovery broadcast and be opened by its IP address, where it names
+    itself "GV01" rather than discovery's "Aravis-Fake-GV01". One camera, one lock: a
+    second opener is still told who holds it (before: it got past the lock and failed on
+    a register write timeout)."""
+    import drivers.aravis_camera as backend
+
+    with AravisCamera("127.0.0.1", CameraSettings()) as first:  # discovered
+        first.start()
+        first.next_frame(2.0)
+        lock_file = first._lock.path
+    monkeypatch.setattr(backend, "list_aravis_devices", lambda include_fake=False: [])  # discovery misses it
+    with AravisCamera("127.0.0.1", CameraSettings()) as again:
+        again.start()
+        again.next_frame(2.0)
+        assert again._lock.path == lock_file
+        monkeypatch.undo()
+        monkeypatch.setenv("CUBELOC_LOCK_DIR", str(lock_file.parent))
+        with pytest.raises(CameraBusy, match=rf"camera {gv_fake.device_id} is held by pid {os.getpid()}"):
+            AravisCamera(gv_fake.device_id, CameraSettings()).open()
+        again.next_frame(2.0)
 
 
 def test_unknown_camera_lists_what_was_found(gv_fake):

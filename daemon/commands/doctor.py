@@ -230,11 +230,11 @@ def check_usb() -> list[Check]:
 def probe_camera(device) -> CameraProbe:
     """Open the camera briefly (unless someone holds it): sensor size, GigE packet size."""
     from cubeloc.errors import CubelocError
-    from drivers.aravis_camera import _aravis
+    from drivers.aravis_camera import _aravis, camera_lock_key
     from drivers.ownership import CameraLock
 
     aravis_id = device.device_id.removeprefix("aravis:")
-    lock = CameraLock(aravis_id)
+    lock = CameraLock(camera_lock_key(device))
     try:
         lock.acquire()
     except CubelocError as exc:  # CameraBusy: the running daemon, usually
