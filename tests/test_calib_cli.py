@@ -198,13 +198,13 @@ def test_camera_owned_by_another_process_says_how_to_proceed(tmp_path):
     env = {**os.environ, "CUBELOC_LOCK_DIR": str(tmp_path / "locks")}
     os.environ["CUBELOC_LOCK_DIR"] = env["CUBELOC_LOCK_DIR"]
     try:
-        with CameraLock("Fake_1"):
+        with CameraLock("Aravis-Fake-1"):  # the lock name: vendor-model-serial
             result = run_cli("calibrate", "--camera", "aravis:Fake_1", "--out", str(tmp_path / "c.yaml"), env=env)
     finally:
         del os.environ["CUBELOC_LOCK_DIR"]
     assert result.returncode == 2
     _no_traceback(result)
-    assert "systemctl stop cubeloc" in result.stderr and "Fake_1" in result.stderr
+    assert "systemctl stop cubeloc" in result.stderr and "Aravis-Fake-1" in result.stderr
 
 
 def test_help_spells_out_what_board_sizes_count():

@@ -121,6 +121,46 @@ def test_every_broken_thing_fails_with_its_fix(tmp_path, capsys):
     assert levels(checks, "camera") == {OK}  # the camera itself is fine
 
 
+def run_as_printed(command: str, tmp_path) -> None:
+    """Run a suggested command exactly as printed (``cubeloc`` is this checkout's): it
+    must exit 0, or, for a live calibration that waits for the board, be running after
+    5 s (then it is interrupted, as a technician would) with no other complaint than that."""
+    import shlex
+    import signal
+    import subprocess
+    import sys
+
+    words = shlex.split(command)
+    assert words[0] == "cubeloc", command
+    process = subprocess.Popen([sys.executable, "-m", "daemon.cli", *words[1:]], cwd=tmp_path, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        out, err = process.communicate(timeout=5)
+        assert process.returncode == 0, (command, err)
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=20)
+        # it grabbed until told to stop: its one complaint is that no view was kept
+        errors = [line for line in err.splitlines() if "error" in line.lower()]
+        assert errors and all("stopped on request" in line for line in errors), (command, err)
+        assert words[1] == "calibrate" and "--camera" in words, command  # the one that waits for views
+
+
+def test_every_suggested_command_runs_as_printed(tmp_path, capsys):
+    """Before: ``cubeloc calibrate --board SPEC --camera Fake_1 ...`` (a placeholder and the
+    source without its ``aravis:``): it could not run."""
+    port = free_port()
+    config = write_setup(tmp_path, port=port, serial="22334455", size=(1280, 1024), target="family: [\n")
+    code, checks = doctor(capsys, config, "--fake")
+    assert code == 1
+    commands = {c["command"] for group in checks.values() for c in group if c["command"]}
+    assert {"cubeloc generate cube --help"} < commands, commands
+    calibrate = next(c for c in commands if c.startswith("cubeloc calibrate"))
+    assert "--camera aravis:Fake_1" in calibrate and f"--config {config}" in calibrate and "--force" in calibrate
+    for command in sorted(commands):
+        run_as_printed(command, tmp_path)
+
+
 def test_missing_camera_unreachable_router_and_text_output(tmp_path, capsys):
     port, closed = free_port(), free_port()
     config = write_setup(tmp_path, port=port, source="aravis:NO-SUCH-CAMERA", connect=f"tcp/127.0.0.1:{closed}")
@@ -138,7 +178,7 @@ def test_missing_camera_unreachable_router_and_text_output(tmp_path, capsys):
 
 def test_a_camera_in_use_is_not_opened(tmp_path, capsys):
     config = write_setup(tmp_path, port=free_port())
-    with CameraLock("Fake_1"):  # as the running daemon holds it
+    with CameraLock("Aravis-Fake-1"):  # as the running daemon holds it (vendor-model-serial)
         code, checks = doctor(capsys, config, "--fake")
     in_use = [c for c in checks["camera"] if "in use" in c["message"]]
     assert in_use and in_use[0]["level"] == OK and "held by pid" in in_use[0]["message"]

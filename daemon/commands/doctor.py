@@ -16,7 +16,8 @@ One line per check, ``OK``, ``WARN`` or ``FAIL``, with the fix where there is on
 * the service: ``systemctl is-active cubeloc`` where systemd runs.
 
 Exit code 0 when nothing fails (warnings allowed), 1 when a check fails. ``--json``
-prints one JSON document ``{"ok": bool, "checks": [{"check", "level", "message", "fix"}]}``.
+prints one JSON document ``{"ok": bool, "checks": [{"check", "level", "message", "fix", "command"}]}``
+(``command``: the fix as one command that runs as printed, or "").
 A camera another process holds (the running daemon) is not opened: its lock says who.
 """
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import shutil
 import socket
 import subprocess
@@ -42,10 +44,12 @@ class Check:
     level: str  # OK, WARN or FAIL
     message: str
     fix: str = ""
+    command: str = ""  # the fix as one command that runs as printed (tests/test_doctor.py runs them)
 
     def line(self) -> str:
         fix = f" -- fix: {self.fix}" if self.fix else ""
-        return f"{self.level:<4}  {self.check}: {self.message}{fix}"
+        run = f"; run: {self.command}" if self.command else ""
+        return f"{self.level:<4}  {self.check}: {self.message}{fix}{run}"
 
 
 @dataclass(frozen=True)
@@ -113,12 +117,13 @@ def diagnose(config_path: str | None, include_fake: bool = False, timeout_s: flo
     if probe is not None and probe.busy:
         checks.append(Check("camera", OK, f"in use, not opened: {probe.busy}"))
     elif probe is not None and probe.error:
-        checks.append(Check("camera", FAIL, probe.error, "check power and cable; 'cubeloc devices' lists what is seen"))
+        checks.append(Check("camera", FAIL, probe.error, "check power and cable; 'cubeloc devices' lists what is seen",
+                            "cubeloc devices"))
     if device is not None and device.transport == "gige" and probe is not None:
         checks.append(check_gige(device, probe))
     if config is None:
         return checks + [check_service()]
-    checks += check_calibration(config, device, probe)
+    checks += check_calibration(config, config_path, device, probe)
     checks.append(check_target(config))
     checks += check_zenoh(config, timeout_s)
     checks.append(check_service())
@@ -307,17 +312,22 @@ def check_gige(device, probe: CameraProbe) -> Check:
 
 
 # -- files -------------------------------------------------------------------------------
-def check_calibration(config, device, probe: CameraProbe | None) -> list[Check]:
+def check_calibration(config, config_path: str | None, device, probe: CameraProbe | None) -> list[Check]:
     from calib.camera_info import read_camera_info
     from cubeloc.errors import CubelocError
 
     path = config.positioning.calibration
-    fix = (f"calibrate: cubeloc calibrate --board SPEC --camera {device.device_id.removeprefix('aravis:')} "
-           f"--out {path}" if device is not None else f"calibrate the camera: cubeloc calibrate ... --out {path}")
+    words = ["cubeloc", "calibrate", "--camera", config.camera.source]
+    if config_path or os.environ.get("CUBELOC_CONFIG"):
+        words += ["--config", config_path or os.environ["CUBELOC_CONFIG"]]  # the daemon's camera settings
+    words += ["--out", str(path)] + (["--force"] if Path(path).exists() else [])
+    command = shlex.join(words)
+    fix = ("calibrate this camera: show it the board (the default ChArUco; --board SPEC for another) "
+           "until the coverage is complete")
     try:
         calibration = read_camera_info(path)
     except CubelocError as exc:
-        return [Check("calibration", FAIL, str(exc), fix)]
+        return [Check("calibration", FAIL, str(exc), fix, command)]
     checks = []
     size = (config.camera.width, config.camera.height)
     if calibration.size != size:
@@ -330,7 +340,7 @@ def check_calibration(config, device, probe: CameraProbe | None) -> list[Check]:
     serial = str(calibration.metadata.get("camera_serial") or "")
     if device is not None and device.serial and serial and serial != device.serial:
         checks.append(Check("calibration", FAIL, f"{path} was made for camera serial {serial}, the configured "
-                            f"camera is serial {device.serial}", fix))
+                            f"camera is serial {device.serial}", fix, command))
     elif not serial:
         checks.append(Check("calibration", WARN, f"{path} does not say which camera it is for "
                             "(no calibration.camera_serial)", "make sure it is this camera's; cubeloc calibrate records it"))
@@ -350,7 +360,8 @@ def check_target(config) -> Check:
     try:
         target = load_target(path)
     except CubelocError as exc:
-        return Check("target", FAIL, str(exc), "correct it, or write one: cubeloc generate cube --help")
+        return Check("target", FAIL, str(exc), "correct it, or write one (cubeloc generate cube)",
+                     "cubeloc generate cube --help")
     if target.cube is not None:
         what = (f"{target.family} cube {target.cube.side_m * 1000:.0f} mm, tags {target.cube.tag_size_m * 1000:.0f} mm, "
                 f"ids {list(target.ids)}")
