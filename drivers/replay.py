@@ -107,8 +107,12 @@ class ReplayCamera(CameraBase):
 
 
 def open_replay_source(argument: str, settings: CameraSettings) -> ReplayCamera:
-    """Factory for ``replay:DIR[@pace]`` (see ``drivers.registry``); not opened yet."""
+    """Factory for ``replay:DIR[@pace]`` (see ``drivers.registry``), opened: its index is
+    read here, so a missing directory or one that is not a sequence fails where the source
+    is made (``cubeloc run --check`` as well as ``run``), as InputFileError naming it."""
     if not argument:
         raise InputFileError("replay source needs a directory: 'replay:DIR' or 'replay:DIR@pace'")
     directory, paced = parse_replay_argument(argument)
-    return ReplayCamera(directory, settings, paced=paced)
+    camera = ReplayCamera(directory, settings, paced=paced)
+    camera.open()
+    return camera

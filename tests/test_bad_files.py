@@ -186,6 +186,21 @@ def test_config_naming_a_bad_file(tmp_path, capsys, good, key):
     assert_one_line_naming(*run_main(capsys, "run", "--config", str(config), "--check"), "run", junk)
 
 
+@pytest.mark.parametrize("case", ["missing", "not a sequence"])
+def test_run_check_refuses_a_replay_source_that_run_would_refuse(tmp_path, capsys, good, case):
+    """``--check`` checks what ``run`` checks: a replay directory that is missing, or that
+    is not a sequence, is one line naming it and exit 2 (before: --check passed it)."""
+    directory = tmp_path / "recorded"
+    if case == "not a sequence":
+        directory.mkdir()
+        (directory / "notes.txt").write_text("not frames\n")
+    config = tmp_path / "cubeloc.toml"
+    config.write_text(f'name = "t"\n[camera]\nsource = "replay:{directory}"\n[positioning]\n'
+                      f'calibration = "{good / "camera.yaml"}"\ntarget = "{good / "target.yaml"}"\n')
+    for argv in (["run", "--config", str(config), "--check"], ["run", "--config", str(config)]):
+        assert_one_line_naming(*run_main(capsys, *argv), "run", directory)
+
+
 def test_bad_files_from_outside(tmp_path, good):
     """The same, as a user sees it: a fresh ``cubeloc`` process per verb (run side by side)."""
     junk = tmp_path / "junk.bin"
