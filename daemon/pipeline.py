@@ -63,6 +63,31 @@ class ProcessingLoop:
         self._reset_requested = 0
         self._reset_done = 0
         self._size_warned = False
+        self._swap_lock = threading.Lock()
+        self._swap: tuple[FrameProcessor, tuple[int, int]] | None = None
+
+    # -- a reload: another processor, from a reload thread ---------------------------------
+    def swap_processor(self, processor: FrameProcessor, expected_size: tuple[int, int]) -> None:
+        """From the next frame on, ``processor`` (for images of ``expected_size``) instead
+        of the current one, which is then closed: no frame sees half of each."""
+        with self._swap_lock:
+            self._swap = (processor, expected_size)
+
+    def _swap_if_requested(self) -> None:
+        with self._swap_lock:
+            swap, self._swap = self._swap, None
+        if swap is None:
+            return
+        old, (self._processor, self._expected_size) = self._processor, swap
+        self._size_warned = False
+        close = getattr(old, "close", None)
+        if close is not None:
+            close()
+        log.info("processor swapped in", size=f"{self._expected_size[0]}x{self._expected_size[1]}")
+
+    @property
+    def processor(self) -> FrameProcessor:
+        return self._processor
 
     # -- reset, asked for from a Zenoh thread ---------------------------------------------
     def request_reset(self, timeout_s: float = 2.0) -> bool:
@@ -87,6 +112,7 @@ class ProcessingLoop:
     def run(self) -> None:
         next_summary = time.monotonic() + self._summary_period_s
         while not self._stop.is_set():
+            self._swap_if_requested()
             self._reset_if_requested()
             item = self._slot.get(GET_TIMEOUT_S)
             if item is not None:
@@ -102,6 +128,7 @@ class ProcessingLoop:
                 self._log_summary()
                 next_summary = now + self._summary_period_s
         self._log_summary()
+        self._swap_if_requested()  # a processor handed over at the very end is closed too
         with self._reset:
             self._reset.notify_all()  # release reset requests waiting on a stopped loop
 

@@ -30,6 +30,18 @@ class Prepared:
 
 def prepare(config: Config) -> Prepared:
     parse_source(config.camera.source)
+    prepared = read_positioning_files(config)
+    build_zenoh_config(config.zenoh)
+    # Build (not open) the camera last (the synthetic one takes a second): a bad source
+    # argument (an unknown synthetic option, a replay without a directory) fails here; a
+    # camera that is merely absent does not.
+    make_camera(config.camera.source, config.camera.settings())
+    return prepared
+
+
+def read_positioning_files(config: Config) -> Prepared:
+    """The calibration and target files the config names, read and checked (at start, and
+    again on a reload: SIGHUP); CubelocError naming the file when one is not usable."""
     path = config.positioning.calibration
     calibration = read_camera_info(path)
     camera_size = (config.camera.width, config.camera.height)
@@ -40,12 +52,11 @@ def prepare(config: Config) -> Prepared:
             "at the camera's resolution or set camera.width and camera.height to match"
         )
     target = load_target(config.positioning.target)
-    build_zenoh_config(config.zenoh)
-    # Build (not open) the camera last (the synthetic one takes a second): a bad source
-    # argument (an unknown synthetic option, a replay without a directory) fails here; a
-    # camera that is merely absent does not.
-    make_camera(config.camera.source, config.camera.settings())
-    return Prepared(config, calibration, path.read_text(encoding="utf-8"), target)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:  # replaced between the two reads
+        raise ConfigError(f"calibration {path}: cannot read ({exc})") from None
+    return Prepared(config, calibration, text, target)
 
 
 def make_processor(prepared: Prepared) -> FrameProcessor:

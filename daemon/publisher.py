@@ -45,7 +45,7 @@ class ZenohPublisher:
         self._zenoh = zenoh
         prefix = key_prefix(name)
         self.prefix = prefix
-        self._calibration_yaml = calibration_yaml
+        self.calibration_yaml = calibration_yaml  # replaced whole on a reload (SIGHUP)
         self._request_reset = request_reset
         self._pose = session.declare_publisher(
             f"{prefix}/pose",
@@ -76,7 +76,7 @@ class ZenohPublisher:
     # so the caller learns which daemon answered. Payload, parameters and attachment of a
     # query are ignored: nothing a peer sends can change what these do.
     def _on_calibration(self, query: zenoh.Query) -> None:
-        query.reply(f"{self.prefix}/calibration", self._calibration_yaml.encode("utf-8"),
+        query.reply(f"{self.prefix}/calibration", self.calibration_yaml.encode("utf-8"),
                     encoding=self._zenoh.Encoding.TEXT_YAML)
 
     def _on_reset(self, query: zenoh.Query) -> None:

@@ -2,7 +2,10 @@
 
 Three threads: capture (daemon/capture.py), processing (the caller's thread,
 daemon/pipeline.py) and status (here, once a second). ``stop`` is the only way to end
-it; signal handlers (daemon/commands/run.py) only set it. Shutdown is in order: the loop
+it; signal handlers (daemon/commands/run.py) only set it. ``reload`` (SIGHUP, systemctl
+reload) makes the status thread read the calibration and target files again, check them
+and hand the loop a processor built on them between two frames; a file that does not
+pass is logged and the old ones stay. Shutdown is in order: the loop
 finishes its frame, the capture thread closes the camera, a last ``status`` goes out, the
 Zenoh entities are undeclared and the session closed, all within about a second.
 """
@@ -22,7 +25,8 @@ from daemon.frame_queue import LatestFrameSlot
 from daemon.loop_stats import LoopStats
 from daemon.messages import StatusReport, status_message
 from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
-from daemon.preflight import Prepared, make_processor
+from cubeloc.errors import CubelocError
+from daemon.preflight import Prepared, make_processor, read_positioning_files
 from daemon.publisher import ZenohPublisher
 from daemon.sdnotify import SystemdNotifier
 from daemon.zenoh_session import ZenohUnreachable, open_session
@@ -32,6 +36,7 @@ from positioning.estimator import FrameProcessor
 log = structlog.get_logger()
 
 JOIN_TIMEOUT_S = 1.0
+RELOAD_POLL_S = 0.1
 BAD_FRAMES_WINDOW_S = 1.0  # status says "bad_frames" while frames arrive and all are dropped
 
 
@@ -44,10 +49,13 @@ class Daemon:
         notifier: SystemdNotifier | None = None,
         processor: FrameProcessor | None = None,
         camera_factory: Callable[[str, CameraSettings], Camera] = make_camera,
+        reload: threading.Event | None = None,
     ) -> None:
         self.prepared = prepared
         self.config = prepared.config
         self.stop = stop
+        self.reload = reload or threading.Event()
+        self._reloads = {"ok": 0, "failed": 0, "last": None}  # on status: extra.reload
         self.notifier = notifier or SystemdNotifier()
         self.processor = processor if processor is not None else make_processor(prepared)
         self.stats = LoopStats()
@@ -64,6 +72,7 @@ class Daemon:
         )
         self._started = time.monotonic()
         self._publisher: ZenohPublisher | None = None
+        self._loop: ProcessingLoop | None = None
         self.serving = threading.Event()  # set once the Zenoh keys are declared
 
     def run(self) -> int:
@@ -83,6 +92,7 @@ class Daemon:
                 capture_stall_s=config.camera.frame_timeout_s + CAPTURE_STALL_MARGIN_S,
             )
             self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset)
+            self._loop = loop
             log.info("daemon started", name=config.name, source=config.camera.source, version=__version__,
                      calibration=str(config.positioning.calibration), target=str(config.positioning.target))
             self.capture.start()
@@ -164,8 +174,32 @@ class Daemon:
             extra={"processor_errors": stats.processor_errors, "faults": self.capture.faults(),
                    # time without a pose since the first one, and now; frames held on rays
                    "lost_s": round(stats.lost_s, 2), "lost_now_s": round(stats.lost_now_s(), 2),
-                   "held_frames": stats.held_frames},
+                   "held_frames": stats.held_frames, "reload": dict(self._reloads)},
         )
+
+    # -- reload (SIGHUP) -------------------------------------------------------------------
+    def _reload_if_requested(self) -> None:
+        if not self.reload.is_set() or self._loop is None:
+            return
+        self.reload.clear()
+        config = self.config.positioning
+        try:
+            prepared = read_positioning_files(self.config)
+            processor = make_processor(prepared)
+        except CubelocError as exc:
+            self._reloads["failed"] += 1
+            self._reloads["last"] = {"ok": False, "stamp_ns": time.time_ns(), "detail": str(exc)}
+            log.error("reload refused: the files in use stay", error=str(exc), calibration=str(config.calibration),
+                      target=str(config.target))
+            return
+        self._loop.swap_processor(processor, prepared.calibration.size)
+        self.processor, self.prepared = processor, prepared
+        self._publisher.calibration_yaml = prepared.calibration_yaml
+        self._reloads["ok"] += 1
+        self._reloads["last"] = {"ok": True, "stamp_ns": time.time_ns(),
+                                 "detail": f"calibration {config.calibration}, target {config.target}"}
+        log.info("reloaded", calibration=str(config.calibration), target=str(config.target),
+                 size=f"{prepared.calibration.width}x{prepared.calibration.height}")
 
     def _only_bad_frames(self, last_fault_at: float) -> bool:
         """Frames dropped at the camera boundary lately, and none passed on for a while
@@ -187,5 +221,11 @@ class Daemon:
         while not self.stop.is_set():
             self._publish_status()
             deadline += period
-            # Monotonic deadlines: a slow publish does not make the rate drift.
-            self.stop.wait(max(0.0, deadline - time.monotonic()))
+            # Monotonic deadlines: a slow publish does not make the rate drift. A reload
+            # is done within a tenth of a second, and status says so at once.
+            while not self.stop.wait(min(RELOAD_POLL_S, max(0.0, deadline - time.monotonic()))):
+                if self.reload.is_set():
+                    self._reload_if_requested()
+                    self._publish_status()
+                if time.monotonic() >= deadline:
+                    break

@@ -15,7 +15,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
-from helpers import free_port
+from helpers import free_port, wait_until
 
 from calib.camera_info import paper_camera, write_camera_info
 from fakes.trajectories import make_trajectory
@@ -108,4 +108,64 @@ def test_synthetic_camera_to_subscriber_process(tmp_path):
     assert settings["listen.endpoints"] == [f"tcp/127.0.0.1:{port}"]
     stopped = next(entry for entry in log if entry["event"] == "daemon stopped")
     assert stopped["camera_closed"] is True
+    assert "Traceback" not in err
+
+
+def test_sighup_reloads_the_calibration_and_keeps_the_old_one_when_the_new_is_bad(tmp_path):
+    """``systemctl reload`` (SIGHUP): a junk calibration is refused, logged and said on
+    status while the daemon goes on with the old one; a good one is swapped in (the
+    ``calibration`` queryable serves it) without a restart. Before: SIGHUP killed it, rc 129."""
+    import zenoh
+
+    from calib.camera_info import CameraCalibration
+
+    port = free_port()
+    config = write_config(tmp_path, port)
+    daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config", config],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                              env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    statuses: list[dict] = []
+    poses = threading.Semaphore(0)
+    session = zenoh.open(conf)
+    try:
+        session.declare_subscriber("cubeloc/e2e/status", lambda s: statuses.append(json.loads(s.payload.to_bytes())))
+        session.declare_subscriber("cubeloc/e2e/pose", lambda s: poses.release())
+
+        def reload_state() -> dict | None:
+            return statuses[-1]["extra"]["reload"] if statuses and "extra" in statuses[-1] else None
+
+        def calibration_served() -> str:
+            replies = list(session.get("cubeloc/e2e/calibration", timeout=5.0))
+            return replies[0].ok.payload.to_bytes().decode() if replies and replies[0].ok else ""
+
+        assert poses.acquire(timeout=120), "no pose before the reload"
+        before = calibration_served()
+        (tmp_path / "camera.yaml").write_bytes(bytes(range(256)))  # a technician's bad copy
+        daemon.send_signal(signal.SIGHUP)
+        assert wait_until(lambda: (reload_state() or {}).get("failed") == 1, 30), statuses[-1:]
+        assert reload_state()["ok"] == 0 and "camera.yaml" in reload_state()["last"]["detail"]
+        assert daemon.poll() is None and calibration_served() == before
+        for _ in range(3):  # poses go on, on the old calibration
+            assert poses.acquire(timeout=30)
+        k = paper_camera().camera_matrix.copy()
+        k[0, 0] += 1.5  # a recalibration: fx 1.5 px more
+        write_camera_info(tmp_path / "camera.yaml", CameraCalibration(1280, 1024, k, paper_camera().distortion))
+        daemon.send_signal(signal.SIGHUP)
+        assert wait_until(lambda: (reload_state() or {}).get("ok") == 1, 30), statuses[-1:]
+        assert reload_state()["last"]["ok"] is True
+        served = calibration_served()
+        assert served != before and served == (tmp_path / "camera.yaml").read_text()
+        for _ in range(3):
+            assert poses.acquire(timeout=30)
+    finally:
+        session.close()
+        daemon.send_signal(signal.SIGTERM)
+        out, err = daemon.communicate(timeout=20)
+    assert daemon.returncode == 0, err[-2000:]
+    events = [json.loads(line)["event"] for line in out.splitlines() if line.startswith("{")]
+    assert "reload refused: the files in use stay" in events and "reloaded" in events and "processor swapped in" in events
     assert "Traceback" not in err

@@ -75,9 +75,15 @@ def run(args) -> int:
         # everything down in order, outside the signal handler.
         stop.set()
 
+    reload = threading.Event()
+
+    def request_reload(signum, _frame) -> None:
+        reload.set()  # SIGHUP (systemctl reload): the status thread reads the files again
+
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGTERM, signal.SIGINT)}
+    previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, request_reload)
     try:
-        daemon = Daemon(prepared, stop)
+        daemon = Daemon(prepared, stop, reload=reload)
         return daemon.run()
     finally:
         for sig, handler in previous.items():
