@@ -19,13 +19,13 @@ from collections.abc import Callable
 import structlog
 
 from cubeloc import __version__
+from cubeloc.errors import CubelocError
 from daemon.cameras import make_camera
 from daemon.capture import CaptureThread
 from daemon.frame_queue import LatestFrameSlot
 from daemon.loop_stats import LoopStats
 from daemon.messages import StatusReport, status_message
 from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
-from cubeloc.errors import CubelocError
 from daemon.preflight import Prepared, make_processor, read_positioning_files
 from daemon.publisher import ZenohPublisher
 from daemon.sdnotify import SystemdNotifier
