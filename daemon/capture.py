@@ -135,7 +135,7 @@ class CaptureThread(threading.Thread):
     def _set_state(self, state: str, detail: str = "", **fields: object) -> None:
         with self._lock:
             self._status = CameraStatus(**{**self._status.__dict__, "state": state, "detail": detail, **fields})
-        if state == "streaming":
+        if state in ("streaming", "no_frames"):  # no_frames: open and started, but silent
             self.streaming.set()
         else:
             self.streaming.clear()
@@ -222,6 +222,8 @@ class CaptureThread(threading.Thread):
                 with self._lock:
                     self._faults["frame_timeout"] += 1
                 waiting_since = time.monotonic()
+                # status says so from the first timeout (the rate drops to 0 with it)
+                self._set_state("no_frames", f"no frame for {self._frame_timeout_s * timeouts_in_row:g} s")
                 log.warning("no frame within the timeout", source=self.source, timeout_s=self._frame_timeout_s, in_a_row=timeouts_in_row)
                 if timeouts_in_row >= self._timeout_streak:
                     return f"{timeouts_in_row} frame timeouts in a row"
@@ -230,6 +232,8 @@ class CaptureThread(threading.Thread):
                 return "ended"
             except CameraError as exc:  # StreamBroken, CameraNotFound: the camera is gone
                 return f"{type(exc).__name__}: {exc}"
+            if timeouts_in_row:
+                self._set_state("streaming", "")
             timeouts_in_row = 0
             waiting_since = time.monotonic()
             if not self._accept(frame):

@@ -161,7 +161,9 @@ class Daemon:
             state=state,
             detail=detail,
             stamp_ns=time.time_ns(),
-            fps=stats.fps(),
+            # a camera not streaming (quiet since its first frame timeout, reconnecting...)
+            # delivers nothing: 0, not the last rate for the rest of the rate's window
+            fps=stats.fps() if camera.state == "streaming" else 0.0,
             frames=stats.frames,
             poses=stats.poses,
             dropped_frames=self.slot.dropped,

@@ -199,6 +199,20 @@ def test_frame_timeouts_are_counted_and_a_streak_reopens_the_camera(run):
     assert poses_after(run, "timeout")
 
 
+def test_a_camera_gone_quiet_shows_at_its_first_timeout_with_a_rate_of_0(run):
+    """From the first frame timeout status says ``no_frames`` and fps 0 (before: the last
+    rate stayed on for the ~3 s of the rate's window, and the state said streaming until
+    a streak of timeouts reopened the camera); frames back, ``streaming`` again."""
+    status = run["subscriber"].status
+    quiet = [s for s in status if s["camera"]["state"] == "no_frames"]
+    assert quiet and all(s["state"] == "no_frames" and s["fps"] == 0.0 for s in quiet), quiet[:3]
+    assert "no frame for 0.3 s" in {s["camera"]["detail"] for s in quiet}
+    gone = [s for s in status if s["camera"]["state"] == "reconnecting"]
+    assert gone and all(s["fps"] == 0.0 for s in gone), gone[:3]
+    first = status.index(quiet[0])
+    assert any(s["camera"]["state"] == "streaming" and s["fps"] > 0 for s in status[first:])
+
+
 def test_unplug_reconnects_and_poses_resume(run):
     camera, subscriber = run["camera"], run["subscriber"]
     reasons = [e["reason"] for e in run["logs"] if e["event"] == "camera lost, reconnecting"]
