@@ -216,3 +216,56 @@ def test_mutual_tls_and_access_control_by_certificate(tmp_path, cube_image, cert
         stop.set()
         thread.join(5.0)
     assert not thread.is_alive()
+
+
+def test_deny_reset_example_protects_what_it_says_and_no_more(tmp_path, cube_image):
+    """examples/zenoh-deny-reset.json5 as shipped, on loopback (an interface it does not
+    name: before, its subjects were eth0 and wlan0 and anyone on lo, or enp3s0, could reset
+    and forge). Through the daemon: no reset, no forged pose, calibration answer or alive
+    token reaches a subscriber; the reads stay open to anyone. Not protected, as it says:
+    a subscriber connected straight to the forger hears the forgery."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    stop, thread, resets = run_daemon(tmp_path, cube_image, REPO / "examples" / "zenoh-deny-reset.json5", endpoint)
+    rogue_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rogue_conf = client_conf(endpoint, mode="peer")
+    rogue_conf.insert_json5("listen/endpoints", json.dumps([rogue_endpoint]))
+    sessions: list[Subscriber] = []
+    try:
+        subscriber = Subscriber(client_conf(endpoint))
+        rogue = Subscriber(rogue_conf)
+        sessions += [subscriber, rogue]
+        assert subscriber.wait_for_poses(3)
+        assert b"image_width: 1280" in subscriber.ask("calibration")[0]  # reads are open (eavesdropping too)
+        assert rogue.ask("reset") == [] and subscriber.ask("reset") == [] and resets == []
+
+        rogue.session.declare_queryable(f"cubeloc/{NAME}/calibration",
+                                        lambda query: query.reply(f"cubeloc/{NAME}/calibration", b"forged"))
+        token = rogue.session.liveliness().declare_token("cubeloc/forged/alive")
+        straight = Subscriber(client_conf(rogue_endpoint))  # connected to the forger, not the daemon
+        sessions.append(straight)
+        time.sleep(0.5)
+        for _ in range(10):
+            rogue.session.put(f"cubeloc/{NAME}/pose", "forged by a stranger")
+            time.sleep(0.05)
+        seen = len(subscriber.poses)
+        assert subscriber.wait_for_poses(seen + 5)
+        assert {"forged": "forged by a stranger"} not in subscriber.poses
+        assert subscriber.ask("calibration") and b"forged" not in subscriber.ask("calibration")
+        alive = {str(r.ok.key_expr) for r in subscriber.session.liveliness().get("cubeloc/*/alive", timeout=2.0)
+                 if r.ok is not None}
+        assert alive == {f"cubeloc/{NAME}/alive"}, alive
+        # what it does not protect: past the daemon, the forgery arrives
+        assert {"forged": "forged by a stranger"} in straight.poses
+        token.undeclare()
+    finally:
+        for s in sessions:
+            s.session.close()
+        stop.set()
+        thread.join(5.0)
+    assert not thread.is_alive()
+
+
+def test_every_shipped_example_says_what_it_protects_against_and_what_not():
+    for path in sorted((REPO / "examples").glob("zenoh-*.json5")):
+        header = "\n".join(line for line in path.read_text().splitlines() if line.lstrip().startswith("//"))
+        assert "Protects against" in header and "Does NOT protect against" in header, path.name
