@@ -47,7 +47,8 @@ def _starts_gv_fake(path: Path, cache: dict[Path, bool] = {}) -> bool:  # noqa: 
 def _touches_aravis(path: Path, cache: dict[Path, bool] = {}) -> bool:  # noqa: B006 - a per-session memo
     if path not in cache:
         text = path.read_text(encoding="utf-8") if path.suffix == ".py" else ""
-        cache[path] = any(word in text for word in ("aravis", "Aravis", *GV_FAKE_MARKERS))
+        # the backend by name, or the verbs that run Aravis' discovery
+        cache[path] = any(word in text for word in ("aravis", "Aravis", '"doctor"', '"devices"', *GV_FAKE_MARKERS))
     return cache[path]
 
 

@@ -120,3 +120,19 @@ def test_generate_refuses_explicit_targets_and_bad_dpi(cli, tmp_path):
     cube.write_text(default_cube_yaml())
     result = cli("generate", "cube", "--target", str(cube), "--out", str(tmp_path / "o"), "--dpi", "5")
     assert result.returncode == 2 and "--dpi 5" in result.stderr
+
+
+def test_a_reader_that_stops_early_gets_no_traceback(scene):
+    """``cubeloc pose ... | head -1`` and ``cubeloc doctor --json | head``: the pipe closes
+    before cubeloc is done; it stops quietly (before: a BrokenPipeError traceback)."""
+    import subprocess
+    import sys
+
+    root, _ = scene
+    images = [str(root / "three.png")] * 40
+    for argv in (["pose", "--target", str(root / "cube.yaml"), "--calib", str(root / "camera.yaml"), *images],
+                 ["doctor", "--json", "--timeout", "0.2"]):
+        done = subprocess.run(f"{sys.executable} -m daemon.cli {' '.join(argv)} | head -c 1", shell=True,
+                              capture_output=True, text=True, timeout=300)
+        assert len(done.stdout) == 1, (argv[0], done.stdout)
+        assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, (argv[0], done.stderr[-2000:])
