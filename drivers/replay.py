@@ -14,6 +14,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import structlog
+
 from cubeloc.errors import InputFileError
 from drivers.base import (
     CameraBase,
@@ -26,6 +28,8 @@ from drivers.base import (
     StreamBroken,
 )
 from drivers.sequence import SequenceEntry, read_mono_png, read_sequence_index
+
+log = structlog.get_logger()
 
 PACE_SUFFIX = "@pace"
 
@@ -89,7 +93,13 @@ class ReplayCamera(CameraBase):
                     raise FrameTimeout(f"replay {self.directory}: next frame due in {wait:.2f} s")
                 if wait > 0:
                     time.sleep(wait)
-            image = read_mono_png(entry.path)
+            try:
+                image = read_mono_png(entry.path)
+            except InputFileError as exc:  # as a camera's bad buffer: dropped and counted
+                self._position += 1
+                self._stats.incomplete += 1
+                log.warning("replay frame dropped", error=str(exc), dropped=self._stats.incomplete)
+                continue
             frame = Frame(image=image, frame_id=self._position, device_timestamp_ns=entry.stamp_ns,
                           stamp_ns=entry.stamp_ns, exposure_us=0.0)
             self._position += 1

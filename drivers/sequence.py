@@ -73,9 +73,16 @@ def read_mono_png(path: Path) -> np.ndarray:
     data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
     if data is None or data.size == 0:
         raise InputFileError(f"{path}: image file missing or empty")
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    # OpenCV logs its own "[ WARN:0@...] PNG input buffer is incomplete" beside ours: not
+    # while decoding here (the error below names the file and says what is wrong)
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
     if image is None:
-        raise InputFileError(f"{path}: not an image OpenCV can decode")
+        raise InputFileError(f"{path}: not an image OpenCV can decode (truncated or corrupt)")
     if image.dtype != np.uint8:
         raise InputFileError(f"{path}: expected an 8-bit image, got {image.dtype}")
     if image.ndim == 3:

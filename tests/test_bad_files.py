@@ -328,3 +328,44 @@ def test_fuzz_config_value(tmp_path, field, value):
         assert str(exc).startswith(f"config {path}") and "\n" not in str(exc)
         return
     assert config.model_dump() is not None
+
+
+def _sequence_with_a_truncated_frame(root: Path) -> Path:
+    """Four frames; the third's PNG cut in half (a disk filled up while recording)."""
+    from drivers.sequence import SequenceWriter
+
+    with SequenceWriter(root / "seq") as writer:
+        for k in range(4):
+            writer.write(1000 + k, np.full((1024, 1280), 40 * k, np.uint8))
+    third = sorted((root / "seq" / "mav0" / "cam0" / "data").iterdir())[2]
+    third.write_bytes(third.read_bytes()[: third.stat().st_size // 2])
+    return third
+
+
+def test_a_truncated_frame_in_a_replay_is_dropped_and_counted_or_with_strict_stops(tmp_path, good):
+    """As a camera's bad frame: dropped, counted, one warning naming it, and not OpenCV's
+    own "[ WARN:0@...]" line beside it; ``cubeloc track --strict`` stops there, exit 2."""
+    import subprocess
+    import sys
+
+    from drivers.base import CameraSettings, EndOfStream
+    from drivers.replay import open_replay_source
+
+    third = _sequence_with_a_truncated_frame(tmp_path)
+    camera = open_replay_source(str(tmp_path / "seq"), CameraSettings())
+    camera.start()
+    stamps = []
+    with pytest.raises(EndOfStream):
+        while True:
+            stamps.append(camera.next_frame(1.0).stamp_ns)
+    assert stamps == [1000, 1001, 1003] and camera.stats.incomplete == 1 and camera.stats.delivered == 3
+
+    argv = [sys.executable, "-m", "daemon.cli", "track", "--target", str(good / "target.yaml"),
+            "--calib", str(good / "camera.yaml"), "--sequence", str(tmp_path / "seq"), "--out", str(tmp_path / "o.tum")]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "4 frames" in done.stdout and "dropped 1" in done.stdout
+    assert str(third) in done.stderr and "WARN:" not in done.stderr and "Traceback" not in done.stderr
+    strict = subprocess.run([*argv, "--strict"], capture_output=True, text=True, timeout=120)
+    assert strict.returncode == 2 and strict.stderr.count("\n") == 1 and str(third) in strict.stderr, strict.stderr
+    assert "WARN:" not in strict.stderr

@@ -31,6 +31,9 @@ def register(subparsers) -> None:
     parser.add_argument("--out", required=True, metavar="OUT.tum", help="trajectory to write (TUM format)")
     parser.add_argument("--poses", metavar="OUT.jsonl",
                         help="also write the cubeloc.pose/1 payload of every frame with a pose, one JSON per line")
+    parser.add_argument("--strict", action="store_true",
+                        help="stop at the first frame that cannot be read or has the wrong size (exit 2); "
+                             "by default it is dropped and counted, as a camera's bad frames are")
     parser.add_argument("--background-ba", action="store_true",
                         help="run bundle adjustment in a worker thread, as the daemon does")
     parser.set_defaults(func=run)
@@ -74,12 +77,19 @@ def run(args) -> int:
     started = time.perf_counter()
     try:
         for seq, entry in enumerate(entries):
-            image = read_mono_png(entry.path)
-            if image.shape != (calibration.height, calibration.width):
-                raise InputFileError(
-                    f"{entry.path}: image is {image.shape[1]}x{image.shape[0]} but {args.calib} is for "
-                    f"{calibration.width}x{calibration.height}"
-                )
+            try:
+                image = read_mono_png(entry.path)
+                if image.shape != (calibration.height, calibration.width):
+                    raise InputFileError(
+                        f"{entry.path}: image is {image.shape[1]}x{image.shape[0]} but {args.calib} is for "
+                        f"{calibration.width}x{calibration.height}"
+                    )
+            except InputFileError as exc:
+                if args.strict:
+                    raise
+                states["dropped"] += 1
+                log.warning("track.frame_dropped", seq=seq, error=str(exc))
+                continue
             result = processor.process(image, entry.stamp_ns, seq)
             if result.estimate is not None:
                 poses.append(StampedPose(entry.stamp_ns, result.estimate.T_world_camera))
