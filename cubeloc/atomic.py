@@ -29,7 +29,7 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO]:
     try:
         # mkstemp makes the file private (0600); give it the mode a plain open() would,
         # so a calibration written by a technician stays readable by the daemon's user
-        os.fchmod(fd, 0o666 & ~_current_umask())
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, mode) as handle:
             yield handle
             handle.flush()
@@ -62,7 +62,7 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
-def _current_umask() -> int:
+def current_umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask

@@ -24,7 +24,7 @@ from pathlib import Path
 import structlog
 
 from calib.camera_info import CameraCalibration, paper_camera, write_camera_info
-from cubeloc.atomic import atomic_write_text, fsync_directory
+from cubeloc.atomic import atomic_write_text, current_umask, fsync_directory
 from cubeloc.errors import InputFileError
 from drivers.sequence import SequenceWriter
 from fakes.camera import RenderOptions, SyntheticCamera
@@ -72,6 +72,9 @@ def write_synthetic_sequence(
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
     try:
+        # mkdtemp makes it private (0700); the sequence gets the mode a plain mkdir would,
+        # as `cubeloc record` writes (the usual umask: 0755)
+        staging.chmod(0o777 & ~current_umask())
         # PNG encoding releases the GIL: write frame k in a thread while frame k + 1 renders
         with camera, SequenceWriter(staging) as writer, ThreadPoolExecutor(1) as encoder:
             camera.start()

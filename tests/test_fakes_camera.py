@@ -189,3 +189,35 @@ def test_simulate_offers_every_trajectory():
     from fakes.trajectories import TRAJECTORIES
 
     assert TRAJECTORY_NAMES == TRAJECTORIES
+
+
+def test_simulate_sigterm_leaves_nothing_and_folders_take_the_usual_mode(tmp_path):
+    """SIGTERM mid-render removes the staging folder as Ctrl-C does (before: tens of MB of
+    ``.partial`` left); a finished sequence's folders have the mode a plain mkdir gives
+    (before: 0700 from the staging folder; ``record`` wrote 0755)."""
+    import os
+    import signal
+    import stat
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "long"
+    process = subprocess.Popen([sys.executable, "-m", "daemon.cli", "simulate", "--trajectory", "paper", "--out", str(out)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not any(tmp_path.glob(".long.*.partial/mav0/cam0/data/*.png")):
+        time.sleep(0.1)
+    assert any(tmp_path.glob(".long.*.partial/mav0/cam0/data/*.png")), "no frame rendered within 60 s"
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode != 0 and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
+
+    umask = os.umask(0o022)
+    os.umask(umask)
+    done = subprocess.run([sys.executable, "-m", "daemon.cli", "simulate", "--trajectory", "paper", "--seconds", "0.2",
+                           "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    for folder in (out, out / "mav0", out / "mav0" / "cam0", out / "mav0" / "cam0" / "data"):
+        assert stat.S_IMODE(folder.stat().st_mode) == 0o777 & ~umask, folder

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 import time
 
@@ -23,8 +24,12 @@ def register(subparsers) -> None:
                         help="camera path; the robot-motion scenarios (turn_after_init ... long_lap) bring "
                              "their own passers-by, exposure steps and exposure-long motion blur")
     parser.add_argument("--out", required=True, help="sequence directory to create (must not exist or be empty)")
-    parser.add_argument("--seconds", type=float, help="length (default per trajectory, e.g. paper 30, long_lap 110)")
-    parser.add_argument("--fps", type=float, help="frame rate (default 10; agile and spin_in_place_fast 30)")
+    from fakes.trajectories import DEFAULT_FPS, DEFAULT_FPS_OF, DEFAULT_SECONDS
+
+    lengths = ", ".join(f"{name} {seconds:g}" for name, seconds in DEFAULT_SECONDS.items())
+    fast = ", ".join(f"{name} {fps:g}" for name, fps in DEFAULT_FPS_OF.items() if fps != DEFAULT_FPS)
+    parser.add_argument("--seconds", type=float, help=f"length in seconds (default per trajectory: {lengths})")
+    parser.add_argument("--fps", type=float, help=f"frame rate (default {DEFAULT_FPS:g}; {fast})")
     parser.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default 0)")
     parser.add_argument("--noise", type=float, default=2.0, help="read noise, DN (default 2)")
     parser.add_argument("--blur", type=float, default=0.0, help="defocus blur sigma, px (default 0)")
@@ -36,11 +41,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from calib.camera_info import read_camera_info
     from daemon.logs import configure_logging
-    from fakes.camera import RenderOptions
-    from fakes.sequence import write_synthetic_sequence
-    from positioning.target import load_target
 
     configure_logging("warning", stream=sys.stderr)  # stdout is for the one-line summary
     started = time.monotonic()
@@ -50,7 +51,29 @@ def run(args) -> int:
         if interactive and (done % 10 == 0 or done == total):
             print(f"\rrendered {done}/{total} frames", end="" if done < total else "\n", file=sys.stderr, flush=True)
 
-    summary = write_synthetic_sequence(
+    def terminated(signum, _frame) -> None:
+        raise KeyboardInterrupt  # SIGTERM as Ctrl-C: the half-written sequence is removed
+
+    previous = signal.signal(signal.SIGTERM, terminated)
+    try:
+        summary = _simulate(args, progress)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    elapsed = time.monotonic() - started
+    print(
+        f"wrote {summary.frames} frames ({summary.seconds:.1f} s of {summary.trajectory}) to {summary.path} "
+        f"in {elapsed:.1f} s ({1000 * elapsed / summary.frames:.0f} ms/frame)"
+    )
+    return 0
+
+
+def _simulate(args, progress):
+    from calib.camera_info import read_camera_info
+    from fakes.camera import RenderOptions
+    from fakes.sequence import write_synthetic_sequence
+    from positioning.target import load_target
+
+    return write_synthetic_sequence(
         args.out,
         args.trajectory,
         seconds=args.seconds,
@@ -63,9 +86,3 @@ def run(args) -> int:
         ),
         progress=progress,
     )
-    elapsed = time.monotonic() - started
-    print(
-        f"wrote {summary.frames} frames ({summary.seconds:.1f} s of {summary.trajectory}) to {summary.path} "
-        f"in {elapsed:.1f} s ({1000 * elapsed / summary.frames:.0f} ms/frame)"
-    )
-    return 0
