@@ -392,7 +392,10 @@ def _flag(options: dict[str, str], key: str) -> bool:
 def open_synthetic_source(argument: str, settings: CameraSettings) -> SyntheticCamera:
     """Build the camera for ``synthetic:ARGUMENT`` (see the module docstring)."""
     name, options = _parse_options(argument)
-    fps = _number(options, "fps", argument) or settings.frame_rate_hz
+    fps = _number(options, "fps", argument)
+    if fps is not None and not (np.isfinite(fps) and 0 < fps <= 1000):
+        raise FeatureNotSupported(f"synthetic:{argument}: option fps={options['fps']!r} must be in (0, 1000] frames/s")
+    fps = fps or settings.frame_rate_hz
     seconds = _number(options, "seconds", argument)
     try:
         if name.endswith(".tum"):

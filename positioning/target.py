@@ -265,6 +265,9 @@ def parse_target(doc: Any, where: str) -> Target:
         missing = {"side", "tag_size", "ids"} - set(cube)
         if missing:
             raise InputFileError(f"{where}: cube is missing {sorted(missing)}")
+        extra = set(cube) - {"side", "tag_size", "ids"}
+        if extra:
+            raise InputFileError(f"{where}: cube: unknown key(s) {sorted(extra)}; expected side, tag_size, ids")
         ids = cube["ids"]
         if not isinstance(ids, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in ids):
             raise InputFileError(f"{where}: cube.ids must be a list of 6 integers")
@@ -287,6 +290,9 @@ def parse_target(doc: Any, where: str) -> Target:
         if not isinstance(raw, dict) or "id" not in raw or "corners" not in raw:
             raise InputFileError(f"{where}: tags[{index}] needs 'id' and 'corners'")
         tag_id = raw["id"]
+        extra = set(raw) - {"id", "corners"}
+        if extra:
+            raise InputFileError(f"{where}: tags[{index}]: unknown key(s) {sorted(extra)}; expected id, corners")
         if isinstance(tag_id, bool) or not isinstance(tag_id, int):
             raise InputFileError(f"{where}: tags[{index}].id must be an integer, got {tag_id!r}")
         corners = raw["corners"]

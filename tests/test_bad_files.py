@@ -60,6 +60,9 @@ BAD_TARGETS = {
     "tiny cube": CUBE.replace("0.18", "1.0e-12").replace("0.144", "1.0e-13").encode(),
     "collinear corners": b"tags: [{id: 0, corners: [[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]}]\n",
     "duplicate id": f"tags: [{{id: 3, corners: {SQUARE}}}, {{id: 3, corners: {SQUARE}}}]\n".encode(),
+    "unknown key at the top": (CUBE + "size_mm: 180\n").encode(),
+    "unknown key in cube": CUBE.replace("ids:", "tag_size_mm: 144, ids:").encode(),
+    "unknown key in a tag": f"tags: [{{id: 0, corners: {SQUARE}, size: 0.1}}]\n".encode(),
 }
 
 BAD_CALIBRATIONS = {

@@ -130,6 +130,8 @@ def test_synthetic_camera_loops_and_paces_in_real_time():
         ("synthetic:zigzag", CameraNotFound, "known: static, orbit"),
         ("synthetic:paper?speed=3", FeatureNotSupported, "unknown option.*speed.*known: seconds"),
         ("synthetic:paper?fps=fast", FeatureNotSupported, "fps='fast'"),
+        ("synthetic:paper?fps=0", FeatureNotSupported, r"fps='0' must be in \(0, 1000\]"),  # before: accepted
+        ("synthetic:paper?fps=-5", FeatureNotSupported, "fps='-5' must be"),
         ("synthetic:paper?hide=top", FeatureNotSupported, "hide='top'"),
     ],
 )
