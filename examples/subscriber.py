@@ -6,6 +6,11 @@ Needs only Zenoh (``pip install eclipse-zenoh``), not cubeloc::
     python3 subscriber.py                                   # find daemons by multicast
     python3 subscriber.py --connect tcp/192.168.1.50:7447   # the robot's address
     python3 subscriber.py --connect tcp/192.168.1.50:7447 > run.tum   # evo_traj tum run.tum
+    python3 subscriber.py --zenoh-config zenoh-operator.json5 --connect tcp/192.168.1.50:7447
+                           # a Zenoh file: the login or TLS set-ups of examples/zenoh-*.json5
+
+With nothing heard from any daemon within ``--wait`` seconds (default 10) it says so on
+stderr and exits 1.
 
 Every pose is printed as one TUM line, ``timestamp tx ty tz qx qy qz qw``: the capture
 time of the frame in seconds, the camera centre in the world (target) frame in metres,
@@ -35,20 +40,36 @@ def main() -> int:
     parser.add_argument("--name", default="*", help="the daemon's name (default: every daemon)")
     parser.add_argument("--count", type=int, default=0, help="stop after this many poses (default: run until Ctrl-C)")
     parser.add_argument("--timeout", type=float, default=0.0, help="stop after this many seconds (default: never)")
+    parser.add_argument("--wait", type=float, default=10.0,
+                        help="exit 1 when no daemon has been heard within this many seconds (default 10)")
+    parser.add_argument("--zenoh-config", metavar="FILE",
+                        help="a Zenoh config file (JSON5): TLS, user/password, mode; --connect goes on top")
     args = parser.parse_args()
 
-    config = zenoh.Config()
+    try:
+        config = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
+    except zenoh.ZError as exc:
+        print(f"subscriber.py: {args.zenoh_config}: not a usable Zenoh config ({exc})", file=sys.stderr)
+        return 2
     if args.connect:  # a known address: no need for multicast discovery
         config.insert_json5("connect/endpoints", json.dumps(args.connect))
         config.insert_json5("scouting/multicast/enabled", "false")
+    where = ", ".join(args.connect) or (f"the endpoints of {args.zenoh_config}" if args.zenoh_config
+                                        else "multicast scouting")
 
     # Zenoh calls these from its own threads; hand the samples to the main thread.
     inbox = queue.Queue()
-    with zenoh.open(config) as session:
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:  # a client whose router does not answer, a TLS failure
+        print(f"subscriber.py: no cubeloc daemon reachable on {where} ({exc})", file=sys.stderr)
+        return 1
+    with session:
         session.declare_subscriber(f"cubeloc/{args.name}/pose", lambda sample: inbox.put(("pose", sample)))
         session.declare_subscriber(f"cubeloc/{args.name}/status", lambda sample: inbox.put(("status", sample)))
-        poses, last_state = 0, {}
-        deadline = time.monotonic() + args.timeout if args.timeout else None
+        poses, last_state, heard = 0, {}, False
+        started = time.monotonic()
+        deadline = started + args.timeout if args.timeout else None
         try:
             while not args.count or poses < args.count:
                 if deadline is not None and time.monotonic() > deadline:
@@ -56,7 +77,12 @@ def main() -> int:
                 try:
                     kind, sample = inbox.get(timeout=0.2)
                 except queue.Empty:
+                    if not heard and time.monotonic() - started > args.wait:
+                        print(f"subscriber.py: no cubeloc daemon seen on {where} within {args.wait:g} s",
+                              file=sys.stderr)
+                        return 1
                     continue
+                heard = True
                 message = json.loads(sample.payload.to_bytes())
                 if kind == "status":
                     # Say when a daemon's state changes (target, no_target, reconnecting...).

@@ -80,3 +80,50 @@ def test_echo_json_prints_the_payloads(publisher):
     docs = [json.loads(line) for line in out.splitlines()]
     assert len(docs) == 3 and all(d["schema"] == "cubeloc.pose/1" for d in docs)
     assert docs[0]["position"] == pytest.approx([1.5, -1.5, 0.91])
+
+
+def test_echo_says_when_no_daemon_answers_and_exits_1():
+    """A dead port (nothing listens): one line saying so, exit 1 (before: nothing printed,
+    exit 0, as if all were well)."""
+    port = free_port()
+    done = subprocess.run([sys.executable, "-m", "daemon.cli", "echo", "--connect", f"tcp/127.0.0.1:{port}",
+                           "--no-scouting", "--wait", "1.5"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1, (done.stdout, done.stderr)
+    assert done.stdout == ""
+    assert f"no cubeloc daemon seen on tcp/127.0.0.1:{port} within 1.5 s" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_the_first_pose_shows_no_rate_rather_than_0_hz(publisher):
+    port, pub = publisher
+    poses = [line for line in _run_echo(port, pub).splitlines() if "  pose  " in line]
+    assert poses[0].endswith("- Hz") and "0.0 Hz" not in poses[0], poses[0]
+    assert poses[-1].endswith(" Hz") and not poses[-1].endswith("- Hz")
+
+
+def test_the_example_subscriber_takes_a_zenoh_file_and_says_when_nothing_answers(publisher, tmp_path):
+    """examples/subscriber.py: ``--zenoh-config FILE`` (the shipped ACL or TLS set-ups need
+    one) and, with nobody there, one line and exit 1."""
+    from pathlib import Path
+
+    subscriber = Path(__file__).resolve().parents[1] / "examples" / "subscriber.py"
+    dead = free_port()
+    done = subprocess.run([sys.executable, str(subscriber), "--connect", f"tcp/127.0.0.1:{dead}", "--wait", "1.5"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and f"no cubeloc daemon seen on tcp/127.0.0.1:{dead} within 1.5 s" in done.stderr
+
+    port, pub = publisher
+    zenoh_file = tmp_path / "client.json5"
+    zenoh_file.write_text(f'{{ mode: "client", connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, '
+                          'scouting: { multicast: { enabled: false } } }\n')
+    reader = subprocess.Popen([sys.executable, str(subscriber), "--zenoh-config", str(zenoh_file), "--count", "2",
+                               "--timeout", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    estimate = PoseEstimate(look_at(np.array([1.5, -1.5, 0.91]), np.zeros(3)), PoseState.TARGET, 3, (0, 1, 4), 0.25)
+    seq = 0
+    while reader.poll() is None and seq < 600:
+        pub.publish_pose(pose_message(seq, 1_700_000_000_000_000_000 + seq * 100_000_000, estimate))
+        seq += 1
+        time.sleep(0.05)
+    out, err = reader.communicate(timeout=30)
+    assert reader.returncode == 0, err
+    assert len(out.splitlines()) == 2 and out.split()[1] == "1.500000", out

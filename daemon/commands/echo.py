@@ -16,6 +16,8 @@ import time
 from datetime import datetime, timezone
 
 RATE_WINDOW_S = 2.0
+WAIT_S = 10.0  # nothing from any daemon this long: say so and exit 1
+NOTHING_HEARD = 1  # the exit code then
 
 
 def register(subparsers) -> None:
@@ -27,6 +29,8 @@ def register(subparsers) -> None:
     parser.add_argument("--no-status", action="store_true", help="poses only")
     parser.add_argument("--count", type=int, metavar="N", help="exit after N poses")
     parser.add_argument("--duration", type=float, metavar="S", help="exit after S seconds")
+    parser.add_argument("--wait", type=float, default=WAIT_S, metavar="S",
+                        help=f"exit 1 when no daemon has been heard within S seconds (default {WAIT_S:g})")
     parser.add_argument("--config", metavar="FILE", help="take the Zenoh settings from this daemon config (TOML)")
     add_zenoh_arguments(parser)
     parser.set_defaults(func=run)
@@ -37,14 +41,15 @@ def _daemon_name(key: str) -> str:
     return parts[1] if len(parts) >= 3 else key
 
 
-def format_pose(name: str, doc: dict, rate_hz: float) -> str:
+def format_pose(name: str, doc: dict, rate_hz: float | None) -> str:
     stamp = datetime.fromtimestamp(doc["stamp_ns"] / 1e9, tz=timezone.utc).strftime("%H:%M:%S.%f")[:-3]
     x, y, z = doc["position"]
     qx, qy, qz, qw = doc["orientation"]
+    rate = f"{rate_hz:5.1f} Hz" if rate_hz is not None else "    - Hz"  # one pose has no rate yet
     return (
         f"{name}  pose  seq {doc['seq']:>6}  {stamp}  "
         f"xyz [{x:+8.4f} {y:+8.4f} {z:+8.4f}] m  q [{qx:+.4f} {qy:+.4f} {qz:+.4f} {qw:+.4f}]  "
-        f"{doc['state']} {doc['planes']} faces  rms {doc['reproj_rms_px']:.2f} px  {rate_hz:5.1f} Hz"
+        f"{doc['state']} {doc['planes']} faces  rms {doc['reproj_rms_px']:.2f} px  {rate}"
     )
 
 
@@ -69,6 +74,10 @@ def run(args) -> int:
     from daemon.logs import configure_logging
     from daemon.zenoh_session import open_session
 
+    from cubeloc.errors import ConfigError
+
+    if not 0 < args.wait <= 3600:
+        raise ConfigError(f"--wait {args.wait:g}: give 0 < S <= 3600 seconds")
     config = load_for_command_line(args)
     # stdout is for the poses; logs (Zenoh settings, problems) go to stderr.
     configure_logging("warning", "console", stream=sys.stderr)
@@ -79,13 +88,22 @@ def run(args) -> int:
         if not args.no_status:
             handlers.append(session.declare_subscriber(f"{prefix}/status", lambda s: inbox.put(("status", s))))
             handlers.append(session.liveliness().declare_subscriber(f"{prefix}/alive", lambda s: inbox.put(("alive", s)), history=True))
-        return _print_loop(inbox, args, zenoh.SampleKind.DELETE)
+        code = _print_loop(inbox, args, zenoh.SampleKind.DELETE)
+    if code == NOTHING_HEARD:
+        where = ", ".join(config.zenoh.connect) or "multicast scouting"
+        waited = min(args.wait, args.duration) if args.duration else args.wait
+        print(f"cubeloc echo: no cubeloc daemon seen on {where} within {waited:g} s "
+              "(is it running? the address, TLS or credentials right?)", file=sys.stderr)
+    return code
+
 
 
 def _print_loop(inbox: queue.Queue, args, delete_kind) -> int:
     arrivals: dict[str, collections.deque] = collections.defaultdict(collections.deque)
     poses = 0
-    deadline = time.monotonic() + args.duration if args.duration else None
+    started = time.monotonic()
+    heard = False
+    deadline = started + args.duration if args.duration else None
     while args.count is None or poses < args.count:
         timeout = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
         if timeout <= 0:
@@ -93,7 +111,10 @@ def _print_loop(inbox: queue.Queue, args, delete_kind) -> int:
         try:
             kind, sample = inbox.get(timeout=timeout)
         except queue.Empty:
+            if not heard and time.monotonic() - started > args.wait:
+                return NOTHING_HEARD
             continue
+        heard = True
         key = str(sample.key_expr)
         name = _daemon_name(key)
         if kind == "alive":
@@ -119,9 +140,9 @@ def _print_loop(inbox: queue.Queue, args, delete_kind) -> int:
             window.append(now)
             while window and now - window[0] > RATE_WINDOW_S:
                 window.popleft()
-            rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 and window[-1] > window[0] else 0.0
+            rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 and window[-1] > window[0] else None
             print(format_pose(name, doc, rate), flush=True)
             poses += 1
         else:
             print(format_status(name, doc), flush=True)
-    return 0
+    return 0 if heard else NOTHING_HEARD
