@@ -70,11 +70,10 @@ def format_status(name: str, doc: dict) -> str:
 def run(args) -> int:
     import zenoh
 
+    from cubeloc.errors import ConfigError
     from daemon.commands.run import load_for_command_line
     from daemon.logs import configure_logging
     from daemon.zenoh_session import open_session
-
-    from cubeloc.errors import ConfigError
 
     if not 0 < args.wait <= 3600:
         raise ConfigError(f"--wait {args.wait:g}: give 0 < S <= 3600 seconds")
