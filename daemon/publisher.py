@@ -47,6 +47,7 @@ class ZenohPublisher:
         self.prefix = prefix
         self.calibration_yaml = calibration_yaml  # replaced whole on a reload (SIGHUP)
         self._request_reset = request_reset
+        self._session = session
         self._pose = session.declare_publisher(
             f"{prefix}/pose",
             encoding=zenoh.Encoding.APPLICATION_JSON,
@@ -90,9 +91,27 @@ class ZenohPublisher:
         # Runs on a Zenoh thread: the processing loop performs the reset (it owns the
         # processor); this waits briefly for it so the caller learns whether it happened.
         done = self._request_reset()
-        log.info("reset requested over zenoh", done=done)
+        log.info("reset requested over zenoh", done=done, **self._who_asked(query))
         query.reply(key, json.dumps({"reset": done}).encode("utf-8"),
                     encoding=self._zenoh.Encoding.APPLICATION_JSON)
+
+    def _who_asked(self, query: zenoh.Query) -> dict[str, object]:
+        """For the log: the name Zenoh authenticated on the link of the session the query
+        says it comes from (its source info, which a querier sets, e.g.
+        ``session.get(..., source_info=SourceInfo(querier.id, 1))``); without one, the
+        authenticated names of every session connected now. Zenoh 1.10 names a link by
+        its TLS certificate's common name (mutual TLS), not by a user/password login."""
+        try:
+            links = list(self._session.info.links())
+        except self._zenoh.ZError:
+            return {}
+        names = {str(link.zid): link.auth_identifier for link in links if link.auth_identifier}
+        source = query.source_info
+        if source is not None and source.source_id is not None:
+            zid = str(source.source_id.zid)
+            return {"asked_by": names.get(zid, "unnamed (no certificate on its link)"), "asked_by_zid": zid}
+        return {"asked_by": "unknown (no source info in the query)",
+                "authenticated_sessions": sorted(set(names.values()))}
 
     def close(self) -> None:
         if self._closed:

@@ -145,6 +145,12 @@ def effective_settings(conf: zenoh.Config) -> dict[str, Any]:
             out[key] = json.loads(conf.get_json(key))
         except (zenoh.ZError, ValueError):  # a key this Zenoh version lacks is not shown
             continue
+    mode = out.get("mode", "peer")
+    for key, value in out.items():
+        # Zenoh's defaults depend on the mode ({"router": [...], "peer": [...]}): the log
+        # shows this mode's (a client listens on nothing, it has no "router" listener)
+        if isinstance(value, dict) and set(value) <= {"router", "peer", "client"}:
+            out[key] = value.get(mode, [] if key.endswith("endpoints") else None)
     return out
 
 

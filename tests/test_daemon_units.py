@@ -265,3 +265,17 @@ def test_port_in_use_exits_2_with_one_line(tmp_path, cli):
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "Address already in use" in lines[0] and f"tcp/127.0.0.1:{port}" in lines[0], lines
     assert ".rs:" not in lines[0]  # no Rust source locations in a user's message
+
+
+def test_the_zenoh_start_up_line_shows_this_modes_listeners():
+    """A client listens on nothing; the log showed Zenoh's per-mode defaults, among them a
+    router's tcp/[::]:7447 that this session never opened."""
+    from daemon.config import ZenohConfig
+    from daemon.zenoh_session import build_zenoh_config, effective_settings
+
+    client = effective_settings(build_zenoh_config(ZenohConfig(mode="client", connect=("tcp/127.0.0.1:7447",))))
+    assert client["listen/endpoints"] == [] and client["connect/endpoints"] == ["tcp/127.0.0.1:7447"]
+    peer = effective_settings(build_zenoh_config(ZenohConfig(mode="peer")))
+    assert peer["listen/endpoints"] == ["tcp/[::]:0"]
+    explicit = effective_settings(build_zenoh_config(ZenohConfig(mode="peer", listen=("tcp/127.0.0.1:7999",))))
+    assert explicit["listen/endpoints"] == ["tcp/127.0.0.1:7999"]

@@ -208,8 +208,22 @@ def test_mutual_tls_and_access_control_by_certificate(tmp_path, cube_image, cert
         sessions.append(operator)
         assert viewer.wait_for_poses(3) and operator.wait_for_poses(3)
         assert viewer.ask("reset") == [] and resets == []
-        assert [json.loads(r) for r in operator.ask("reset")] == [{"reset": True}]
-        assert len(resets) == 1
+        # the log line says who asked: the certificate name on the link of the session the
+        # query comes from (its source info); without source info, who is connected
+        import structlog
+
+        querier = operator.session.declare_querier(f"cubeloc/{NAME}/reset")
+        with structlog.testing.capture_logs() as logs:
+            replies = [r.ok.payload.to_bytes() for r in operator.session.get(
+                f"cubeloc/{NAME}/reset", timeout=3.0, source_info=zenoh.SourceInfo(querier.id, 1)) if r.ok is not None]
+        assert [json.loads(r) for r in replies] == [{"reset": True}]
+        line = next(e for e in logs if e["event"] == "reset requested over zenoh")
+        assert line["asked_by"] == "operator" and line["asked_by_zid"] == str(operator.session.zid()), line
+        with structlog.testing.capture_logs() as logs:
+            assert [json.loads(r) for r in operator.ask("reset")] == [{"reset": True}]
+        line = next(e for e in logs if e["event"] == "reset requested over zenoh")
+        assert line["authenticated_sessions"] == ["operator", "viewer"], line
+        assert len(resets) == 2
     finally:
         for s in sessions:
             s.session.close()
