@@ -118,7 +118,7 @@ class CaptureThread(threading.Thread):
             counts.update(self._camera_counts_before)
             camera = self._camera
         if camera is not None:
-            counts.update({f"camera_{k}": getattr(camera.stats, k) for k in CAMERA_COUNTERS})
+            counts.update(_camera_counts(camera))
         return {k: v for k, v in sorted(counts.items()) if v}
 
     def _count_fault(self, kind: str, message: str, **fields: object) -> None:
@@ -284,7 +284,7 @@ class CaptureThread(threading.Thread):
             camera, self._camera = self._camera, None
             if camera is not None:  # its counters move to the totals in the same step
                 self._dropped_before += camera.stats.dropped
-                self._camera_counts_before.update({f"camera_{k}": getattr(camera.stats, k) for k in CAMERA_COUNTERS})
+                self._camera_counts_before.update(_camera_counts(camera))
         if camera is None:
             return
         self._last_frame_id = None  # a new stream numbers its frames afresh
@@ -302,3 +302,11 @@ class CaptureThread(threading.Thread):
             if remaining <= 0:
                 return
             self._stop_event.wait(min(remaining, POLL_S))
+
+
+def _camera_counts(camera: Camera) -> dict[str, int]:
+    """The backend's counters for ``status.extra.faults``: camera_incomplete (and by cause,
+    camera_incomplete_missing_packets ...), camera_bad_timestamp, camera_frame_id_gaps."""
+    counts = {f"camera_{k}": getattr(camera.stats, k) for k in CAMERA_COUNTERS}
+    counts.update({f"camera_incomplete_{cause}": n for cause, n in camera.stats.incomplete_causes.items()})
+    return counts

@@ -360,10 +360,14 @@ class AravisCamera(CameraBase):
                 return frame
 
     def _frame_from(self, buffer, Aravis) -> Frame | None:
-        status_ok = (buffer.get_status() == Aravis.BufferStatus.SUCCESS
-                     and buffer.get_payload_type() == Aravis.BufferPayloadType.IMAGE)
+        status = buffer.get_status()
+        image_payload = buffer.get_payload_type() == Aravis.BufferPayloadType.IMAGE
+        status_ok = status == Aravis.BufferStatus.SUCCESS and image_payload
+        # missing_packets, size_mismatch, timeout, wrong_packet_id, aborted ... (Aravis' names)
+        cause = (getattr(status, "value_nick", str(int(status))).replace("-", "_")
+                 if status != Aravis.BufferStatus.SUCCESS else "not_an_image")
         device_ns = buffer.get_timestamp()
-        verdict = self._accounting.judge(status_ok, buffer.get_frame_id(), device_ns)
+        verdict = self._accounting.judge(status_ok, buffer.get_frame_id(), device_ns, cause)
         if verdict is not Verdict.ACCEPT:
             return None
         width, height = buffer.get_image_width(), buffer.get_image_height()
@@ -371,6 +375,7 @@ class AravisCamera(CameraBase):
         if len(data) < width * height:
             self._stats.delivered -= 1
             self._stats.incomplete += 1
+            self._stats.incomplete_causes["short_data"] = self._stats.incomplete_causes.get("short_data", 0) + 1
             return None
         image = np.frombuffer(data, dtype=np.uint8, count=width * height).reshape(height, width)
         receipt_ns = buffer.get_system_timestamp() or time.time_ns()

@@ -96,6 +96,9 @@ class CaptureStats:
 
     delivered: int = 0
     incomplete: int = 0  # buffers with a bad status, dropped
+    # ...by cause ("missing_packets", "size_mismatch", "timeout", "short_data", ...): a
+    # cable (missing packets) told apart from a setting (size mismatch)
+    incomplete_causes: dict[str, int] = field(default_factory=dict)
     bad_timestamp: int = 0  # zero or non-monotonic timestamps, dropped
     frame_id_gaps: int = 0  # frames the camera numbered but we never got
     timeouts: int = 0

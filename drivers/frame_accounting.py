@@ -4,7 +4,7 @@ Pure bookkeeping shared by streaming backends, kept apart so it can be tested on
 buffer sequences at boundaries a real camera rarely produces (wraps, resets, gaps).
 
 * A buffer whose status is not success (missing packets, size mismatch, timeout ...) is
-  dropped and counted ``incomplete``. Its frame id is used only if it is ahead of the last
+  dropped and counted ``incomplete``, and by its cause in ``incomplete_causes``. Its frame id is used only if it is ahead of the last
   one: a failed buffer may carry the stale id of a frame already delivered.
 * A zero device timestamp, or one not after the last accepted frame's, is dropped and
   counted ``bad_timestamp``: downstream code (the clock mapping, the tracker, the
@@ -47,8 +47,11 @@ class FrameAccounting:
         self.last_frame_id = None
         self.last_timestamp_ns = None
 
-    def judge(self, status_ok: bool, frame_id: int, timestamp_ns: int) -> Verdict:
+    def judge(self, status_ok: bool, frame_id: int, timestamp_ns: int, cause: str = "bad_status") -> Verdict:
+        """``cause``: why a buffer is not ok (the backend's name for its status), counted
+        in ``stats.incomplete_causes``."""
         if not status_ok:
+            self.stats.incomplete_causes[cause] = self.stats.incomplete_causes.get(cause, 0) + 1
             # An incomplete frame is not also a gap, so its id counts, but only forwards:
             # Aravis hands back failed buffers with the stale id of a frame already seen.
             if self.last_frame_id is None or frame_id > self.last_frame_id:

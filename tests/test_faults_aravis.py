@@ -25,13 +25,15 @@ pytestmark = pytest.mark.skipif(shutil.which(FAKE_GV_CAMERA) is None, reason=f"{
 
 
 class StreamWithBadBuffers:
-    """The real Aravis stream, except that the next ``bad`` buffers it hands back say
-    MISSING_PACKETS (their data is the frame's: only the status is what a lossy link gives)."""
+    """The real Aravis stream, except that the next ``bad`` buffers it hands back carry
+    the status ``status`` (MISSING_PACKETS by default: their data is the frame's, only the
+    status is what a lossy link, or SIZE_MISMATCH what a wrong setting, gives)."""
 
     def __init__(self, stream, Aravis) -> None:
         self._stream, self._Aravis = stream, Aravis
         self.bad = 0
         self.marked = 0
+        self.status = Aravis.BufferStatus.MISSING_PACKETS
 
     def __getattr__(self, name):
         return getattr(self._stream, name)
@@ -42,7 +44,7 @@ class StreamWithBadBuffers:
             return buffer
         self.bad -= 1
         self.marked += 1
-        return BadBuffer(buffer, self._Aravis.BufferStatus.MISSING_PACKETS)
+        return BadBuffer(buffer, self.status)
 
     def push_buffer(self, buffer):
         self._stream.push_buffer(buffer.buffer if isinstance(buffer, BadBuffer) else buffer)
@@ -109,6 +111,15 @@ def test_incomplete_buffers_and_usb_unplug_at_the_aravis_boundary(tmp_path, monk
         report = daemon.report()
         assert report.extra["faults"]["camera_incomplete"] == 3
         assert report.camera.dropped >= 3 and report.camera.state == "streaming"
+        # ...and by cause: a cable (missing packets) told apart from a setting (size mismatch)
+        from drivers.aravis_camera import _aravis
+
+        camera._stream.status = _aravis()[0].BufferStatus.SIZE_MISMATCH
+        camera._stream.bad = 2
+        assert wait_until(lambda: camera._stream.marked == 5 and daemon.stats.frames >= frames + 8)
+        faults = daemon.report().extra["faults"]
+        assert faults["camera_incomplete_missing_packets"] == 3 and faults["camera_incomplete_size_mismatch"] == 2
+        assert faults["camera_incomplete"] == 5
 
         # A USB unplug as Aravis reports it; the device is back at once (replugged).
         camera.unplug_usb()
@@ -120,7 +131,7 @@ def test_incomplete_buffers_and_usb_unplug_at_the_aravis_boundary(tmp_path, monk
         # the counts survive the reconnect (a restarted stream may lose its first frame
         # too); the dead camera's objects were released
         old, new = FaultyAravisCamera.cameras
-        assert old.stats.incomplete >= 3
+        assert old.stats.incomplete >= 5
         assert daemon.report().extra["faults"]["camera_incomplete"] == old.stats.incomplete + new.stats.incomplete
         assert wait_until(lambda: thread_names() == threads_before, 20), (threads_before, thread_names())
         assert daemon.stats.poses == 0  # the fake's test pattern has no cube: no pose, and none wrong
