@@ -45,6 +45,9 @@ class CameraConfig(Section):
     frame_rate_hz: float | None = Field(None, gt=0, le=1000)
     trigger: Literal["free", "software", "line0"] = "free"
     frame_timeout_s: float = Field(1.0, gt=0, le=60)
+    stream_buffers: int = Field(8, ge=2, le=64, description="buffers in flight (usbfs budget: cubeloc doctor)")
+    usb_mode: Literal["async", "sync", "default"] = Field("async", description="USB3 Vision transfers")
+    usb_bandwidth_mbps: float | None = Field(None, gt=0, le=40_000, description="None: the camera's own limit")
 
     def settings(self) -> CameraSettings:
         return CameraSettings(
@@ -56,6 +59,9 @@ class CameraConfig(Section):
             gain_db=self.gain_db,
             frame_rate_hz=self.frame_rate_hz,
             trigger=self.trigger,
+            stream_buffers=self.stream_buffers,
+            usb_mode=self.usb_mode,
+            usb_bandwidth_mbps=self.usb_bandwidth_mbps,
         )
 
 

@@ -271,7 +271,7 @@ class AravisCamera(CameraBase):
 
     def read_settings(self) -> CameraSettings:
         """The settings the camera reports now (for checks and the status line)."""
-        return read_settings(self._require_open(), self._settings.trigger)
+        return read_settings(self._require_open(), self._settings)
 
     def _require_open(self):
         if self._camera is None:
@@ -420,4 +420,4 @@ class AravisCamera(CameraBase):
 
 def open_aravis_source(argument: str, settings: CameraSettings) -> AravisCamera:
     """Factory for ``aravis[:ID]`` (see ``drivers.registry``); the camera is not opened yet."""
-    return AravisCamera(argument, settings)
+    return AravisCamera(argument, settings, buffers=settings.stream_buffers)

@@ -13,9 +13,11 @@ trigger), region before anything sized by it (the payload).
 
 from __future__ import annotations
 
+import dataclasses
+
 import structlog
 
-from drivers.base import CameraError, CameraSettings, FeatureNotSupported, TriggerMode
+from drivers.base import CameraError, CameraSettings, FeatureNotSupported
 from drivers.genicam import FeatureMap
 
 log = structlog.get_logger()
@@ -38,6 +40,8 @@ def apply_settings(cam, features: FeatureMap, settings: CameraSettings, Aravis, 
         _set_frame_rate(cam, features, settings.frame_rate_hz)
         _set_exposure(cam, features, settings.exposure_us, Aravis)
         _set_gain(cam, features, settings.gain_db, Aravis)
+        if cam.is_uv_device():
+            _set_usb(cam, settings, name, Aravis)
         if cam.is_gv_device():
             try:
                 cam.gv_auto_packet_size()
@@ -48,6 +52,22 @@ def apply_settings(cam, features: FeatureMap, settings: CameraSettings, Aravis, 
     except GLib.Error as exc:
         raise CameraError(f"camera {name}: applying the settings failed ({exc.message}); "
                           "check the [camera] values against the camera's ranges") from None
+
+
+def _set_usb(cam, s: CameraSettings, name: str, Aravis) -> None:
+    """USB3 Vision: the transfer mode, and the link throughput limit when one is asked."""
+    if s.usb_mode != "default":
+        cam.uv_set_usb_mode(Aravis.UvUsbMode.ASYNC if s.usb_mode == "async" else Aravis.UvUsbMode.SYNC)
+    if s.usb_bandwidth_mbps is not None:
+        if not cam.uv_is_bandwidth_control_available():
+            raise FeatureNotSupported(f"camera {name} has no DeviceLinkThroughputLimit; "
+                                      "remove camera.usb_bandwidth_mbps")
+        low, high = cam.uv_get_bandwidth_bounds()  # bytes per second
+        wanted = int(s.usb_bandwidth_mbps * 1e6 / 8)
+        if not low <= wanted <= high:
+            raise FeatureNotSupported(f"camera {name}: usb_bandwidth_mbps = {s.usb_bandwidth_mbps:g} is outside "
+                                      f"its range {low * 8 / 1e6:g}..{high * 8 / 1e6:g}")
+        cam.uv_set_bandwidth(wanted)
 
 
 def _set_region(cam, s: CameraSettings, name: str) -> None:
@@ -135,13 +155,13 @@ def _set_gain(cam, features: FeatureMap, gain: float | None, Aravis) -> None:
     cam.set_gain(gain)
 
 
-def read_settings(cam, trigger: TriggerMode) -> CameraSettings:
-    """The settings an open ``Aravis.Camera`` reports now (the trigger mode as requested)."""
+def read_settings(cam, requested: CameraSettings) -> CameraSettings:
+    """The settings an open ``Aravis.Camera`` reports now (the trigger mode and the stream
+    settings as requested)."""
     x, y, width, height = cam.get_region()
-    return CameraSettings(
+    return dataclasses.replace(requested,
         width=width, height=height, offset_x=x, offset_y=y,
         exposure_us=cam.get_exposure_time() if cam.is_exposure_time_available() else None,
         gain_db=cam.get_gain() if cam.is_gain_available() else None,
         frame_rate_hz=cam.get_frame_rate() if cam.is_frame_rate_available() else None,
-        trigger=trigger,
     )

@@ -16,6 +16,7 @@ import numpy as np
 
 from cubeloc.errors import CubelocError
 
+UsbMode = Literal["async", "sync", "default"]
 TriggerMode = Literal["free", "software", "line0"]
 
 
@@ -75,6 +76,13 @@ class CameraSettings:
     gain_db: float | None = None  # None: auto gain where the camera has it
     frame_rate_hz: float | None = None  # None: as fast as the camera runs
     trigger: TriggerMode = "free"
+    # The stream (Aravis; other backends ignore them). Buffers in flight: 8 x 1.3 MB at
+    # 1280x1024 Mono8 fits Linux' default usbfs budget of 16 MB (cubeloc doctor checks it).
+    stream_buffers: int = 8
+    # USB3 Vision transfers: "async" keeps several in flight (Aravis' choice for sustained
+    # rates), "sync" one at a time, "default" leaves Aravis' own default
+    usb_mode: UsbMode = "async"
+    usb_bandwidth_mbps: float | None = None  # DeviceLinkThroughputLimit; None: the camera's
 
 
 @dataclass(frozen=True)

@@ -241,3 +241,46 @@ def test_zenoh_check_logs_in_with_the_daemons_credentials(tmp_path, capsys):
     assert levels(checks, "zenoh") == {OK} and "alive is there" in checks["zenoh"][0]["message"]
     assert levels(refused, "zenoh") == {FAIL}  # a wrong password in the file: the fix names the credentials
     assert "credentials" in refused["zenoh"][0]["fix"]
+
+
+@pytest.mark.parametrize(("budget", "buffers", "level", "words"), [
+    ("16", 8, OK, "usbfs_memory_mb 16 MB holds 8 buffers x 1.25 MB"),   # the kernel's default, our default
+    ("16", 16, FAIL, "needs 16 buffers x 1.25 MB (1280x1024 Mono8) = 20.0 MB"),
+    ("0", 64, OK, "0 (no limit)"),
+    ("1000", 64, OK, "holds 64 buffers"),
+])
+def test_usbfs_budget_against_the_stream_on_a_fake_sysfs(tmp_path, budget, buffers, level, words):
+    from daemon.commands.doctor_checks import USBFS_PARAMETER, check_usbfs
+    from daemon.config import Config
+
+    parameter = tmp_path / USBFS_PARAMETER
+    parameter.parent.mkdir(parents=True)
+    parameter.write_text(budget + "\n")
+    config = Config.model_validate({"camera": {"stream_buffers": buffers}})
+    check = check_usbfs(config, sysfs=tmp_path)
+    assert check.level == level and words in check.message, check
+    if level == FAIL:  # the fix both ways: at once, and for good
+        assert f"echo 1000 | sudo tee {parameter}" in check.fix and "usbcore.usbfs_memory_mb=1000" in check.fix
+        assert "options usbcore usbfs_memory_mb=1000" in check.fix
+    assert check_usbfs(config, sysfs=tmp_path / "elsewhere").level == OK  # no usbcore: nothing to check
+
+
+def test_the_stream_settings_reach_aravis():
+    """camera.stream_buffers, usb_mode and usb_bandwidth_mbps from the config to the
+    backend: the buffers in flight on the fake camera's stream (a USB3 camera is not at
+    hand here: the USB mode and bandwidth are applied only to one)."""
+    from daemon.cameras import make_camera
+    from daemon.config import Config
+    from drivers.aravis_camera import AravisCamera
+
+    config = Config.model_validate({"camera": {"source": "aravis:Fake_1", "width": 512, "height": 512,
+                                               "stream_buffers": 3, "usb_mode": "sync"}})
+    settings = config.camera.settings()
+    assert (settings.stream_buffers, settings.usb_mode, settings.usb_bandwidth_mbps) == (3, "sync", None)
+    camera = make_camera(config.camera.source, settings)
+    assert isinstance(camera, AravisCamera)
+    with camera:
+        assert camera._stream.get_n_buffers() == (3, 0)
+        assert camera.read_settings().stream_buffers == 3
+    with pytest.raises(Exception, match="usb_mode"):
+        Config.model_validate({"camera": {"usb_mode": "turbo"}})
