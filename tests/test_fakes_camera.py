@@ -223,3 +223,17 @@ def test_simulate_sigterm_leaves_nothing_and_folders_take_the_usual_mode(tmp_pat
     assert done.returncode == 0, done.stderr
     for folder in (out, out / "mav0", out / "mav0" / "cam0", out / "mav0" / "cam0" / "data"):
         assert stat.S_IMODE(folder.stat().st_mode) == 0o777 & ~umask, folder
+
+
+def test_simulate_help_gives_every_trajectorys_default_length():
+    """Before: four default lengths for five trajectories (and none of the scenarios')."""
+    import subprocess
+    import sys
+
+    from fakes.trajectories import DEFAULT_SECONDS
+
+    done = subprocess.run([sys.executable, "-m", "daemon.cli", "simulate", "--help"], capture_output=True, text=True,
+                          timeout=60, env={"COLUMNS": "1000", **__import__("os").environ})
+    text = " ".join(done.stdout.split())
+    for name, seconds in DEFAULT_SECONDS.items():
+        assert f"{name} {seconds:g}" in text, name

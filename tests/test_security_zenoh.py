@@ -78,6 +78,15 @@ class Subscriber:
                 if r.ok is not None]
 
 
+def stop_all(sessions: list[Subscriber], stop, thread) -> None:
+    """Close the subscribers' sessions, then stop the daemon; it must have stopped."""
+    for subscriber in sessions:
+        subscriber.session.close()
+    stop.set()
+    thread.join(5.0)
+    assert not thread.is_alive()
+
+
 def client_conf(connect: str, *, mode: str = "client", user: str | None = None,
                 tls: dict | None = None) -> zenoh.Config:
     conf = zenoh.Config.from_file(str(REPO / "examples" / "zenoh-operator.json5")) if user else zenoh.Config()
@@ -135,11 +144,7 @@ def test_access_control_with_user_and_password(tmp_path, cube_image):
         assert [json.loads(r) for r in operator.ask("reset")] == [{"reset": True}]
         assert len(resets) == 1
     finally:
-        for s in sessions:
-            s.session.close()
-        stop.set()
-        thread.join(5.0)
-    assert not thread.is_alive()
+        stop_all(sessions, stop, thread)
 
 
 @pytest.fixture(scope="module")
@@ -225,11 +230,7 @@ def test_mutual_tls_and_access_control_by_certificate(tmp_path, cube_image, cert
         assert line["authenticated_sessions"] == ["operator", "viewer"], line
         assert len(resets) == 2
     finally:
-        for s in sessions:
-            s.session.close()
-        stop.set()
-        thread.join(5.0)
-    assert not thread.is_alive()
+        stop_all(sessions, stop, thread)
 
 
 def test_deny_reset_example_protects_what_it_says_and_no_more(tmp_path, cube_image):
@@ -272,11 +273,7 @@ def test_deny_reset_example_protects_what_it_says_and_no_more(tmp_path, cube_ima
         assert {"forged": "forged by a stranger"} in straight.poses
         token.undeclare()
     finally:
-        for s in sessions:
-            s.session.close()
-        stop.set()
-        thread.join(5.0)
-    assert not thread.is_alive()
+        stop_all(sessions, stop, thread)
 
 
 def test_every_shipped_example_says_what_it_protects_against_and_what_not():
