@@ -129,12 +129,6 @@ class Map:
             for track_id, point in zip(ids[result.good], result.points_world[result.good], strict=True):
                 self.add_point(int(track_id), point, kf.kf_id if kf.anchored else first_id)
 
-    def first_observer(self, track_id: int) -> Keyframe | None:
-        for kf in self.keyframes.values():
-            if kf.observation(track_id) is not None:
-                return kf
-        return None
-
     def correct(self, correction: Transform) -> None:
         """Move the drifted part of the map (what was built without the target) by
         ``correction`` (T_true_drifted): the target's return says where it really is."""
