@@ -4,9 +4,11 @@
 at the pace they were recorded (frame k waits until ``(t_k - t_0)`` after ``start()``).
 A frame's ``stamp_ns`` and ``device_timestamp_ns`` are the recorded timestamp, its
 ``frame_id`` the row number (from 0), its exposure 0.0 (not recorded in the layout).
-Rows whose timestamp does not increase are dropped and counted, like a live camera's.
-After the last frame ``next_frame`` raises EndOfStream. A missing or malformed sequence
-or image raises InputFileError naming the file.
+Rows whose timestamp does not increase, and images that cannot be read (missing,
+truncated), are dropped and counted (``bad_timestamp``, ``incomplete``) with a warning
+naming the file, like a live camera's bad frames. After the last frame ``next_frame``
+raises EndOfStream. A missing or malformed sequence (its directory, its index) raises
+InputFileError naming the file, when the source is made.
 """
 
 from __future__ import annotations

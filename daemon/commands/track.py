@@ -5,6 +5,9 @@ daemon runs: initialisation on the target, then tracking, relocalisation and cor
 by the target. Writes every frame with a pose to ``OUT.tum`` (T_world_camera, TUM
 format, readable by ``evo_ape tum``), prints a summary line per state and, when
 ``DIR/groundtruth.tum`` exists, the RMS absolute trajectory error with no alignment.
+A frame that cannot be read or has the wrong size is dropped and counted (``dropped N``
+in the summary, a warning naming it), as a camera's bad frame; ``--strict`` stops there
+with exit 2.
 
 Bundle adjustment runs in the frame loop here (``--background-ba`` to run it in a worker
 thread as the daemon does): offline there is no frame to miss, and the result does not
