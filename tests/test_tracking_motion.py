@@ -1,0 +1,61 @@
+"""The tracker's constant-velocity motion model: where it looks for the tracks, and what a
+relocalisation does to it (helpers from tests/test_tracking_core.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_tracking_core import CAL, SYNC, SyntheticTracks, room_points, run, trolley_path
+
+from positioning.geometry import Transform
+from positioning.tracking.tracker import Tracker
+from positioning.tracking.types import Tracks
+
+
+def test_motion_model_predicts_where_tracks_land_after_a_skipped_frame():
+    """The front end starts KLT at ``predict_pixels``: after two frames of one step each
+    (100 ms) and a gap of two (a frame skipped), the guesses are a small fraction of the
+    distance the features moved, for tracks with map points and for those without."""
+    poses = trolley_path(50)  # twice the speed of the other tests
+    tracker = Tracker(CAL, SYNC)
+    source = SyntheticTracks(room_points(12), seed=13, noise_px=0.0)
+    run(tracker, source, poses[:21], lambda i: i < 12)
+    last = source.tracks(poses[20])  # the live tracks in the last frame stepped (noise-free)
+    predicted = tracker.predict_pixels(22 * 100_000_000, last.ids, last.pixels)
+    assert predicted is not None and predicted.shape == last.pixels.shape
+    source._view(poses[22])
+    truth = source._uv[last.ids]
+    moved = np.linalg.norm(truth - last.pixels, axis=1)
+    missed = np.linalg.norm(truth - predicted, axis=1)
+    has_point = np.array([int(t) in tracker.map.points for t in last.ids])
+    assert has_point.sum() >= 50 and (~has_point).sum() >= 5  # both kinds are there
+    assert np.median(moved) > 15  # a turn: KLT would start ~20 px off (measured 22)
+    assert np.median(missed[has_point]) < 0.2 * np.median(moved[has_point])  # measured 2.0 px
+    assert np.median(missed[~has_point]) < 0.3 * np.median(moved[~has_point])  # measured 2.7 px
+    # nothing in view: coasted for 0.5 s, then lost: nothing to predict, KLT starts where it was
+    statuses = [tracker.step(k * 100_000_000, Tracks.empty(), None).result.status for k in range(23, 30)]
+    assert statuses[0] == "ok" and statuses[-1] == "lost", statuses
+    assert tracker.predict_pixels(30 * 100_000_000, last.ids, last.pixels) is None
+
+
+def test_a_relocalisation_keeps_the_motion_model():
+    """A relocalisation corrects where the camera is, not how it moves: the next frame is
+    still predicted one step on (without it KLT starts unguided; at 4.5 deg a frame
+    spin_on_axis lost 3/4 of its tracks and then the track)."""
+    poses = trolley_path(50)
+    tracker = Tracker(CAL, SYNC)
+    source = SyntheticTracks(room_points(12), seed=13, noise_px=0.0)
+    run(tracker, source, poses[:21], lambda i: i < 12)
+    before = tracker.predict(21 * 100_000_000)
+    step = tracker.last_pose.inverse() @ before
+    # it is moving and turning (measured: 52 mm and 0.4 deg a frame)
+    assert np.linalg.norm(step.translation) > 0.02 and np.degrees(step.rotation_angle_to(Transform.identity())) > 0.2
+    corrected = Transform(poses[20].rotation, poses[20].translation + [0.004, 0.0, 0.0])
+    tracker.relocalised(20 * 100_000_000, corrected, source.tracks(poses[20]), np.eye(6) * 1e-6)
+    after = tracker.predict(21 * 100_000_000)
+    assert np.allclose((corrected @ step).matrix(), after.matrix(), atol=1e-9)
+    # and the next frame's step, measured from the relocalised pose, is its 4 mm
+    # correction, not motion: the velocity stays as it was for one more frame
+    out = tracker.step(21 * 100_000_000, source.tracks(poses[21]), None)
+    assert out.result.estimate is not None
+    predicted = tracker.last_pose.inverse() @ tracker.predict(22 * 100_000_000)
+    assert np.allclose(predicted.translation, step.translation, atol=1e-9)
