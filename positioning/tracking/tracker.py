@@ -352,10 +352,7 @@ class Tracker:
         is still published, but the map is not bent to it."""
         if target is None or target.reproj_rms_px > self.options.anchor_max_reproj_px:
             return False
-        if target.covariance is None:
-            return True
-        std_m = float(np.sqrt(max(np.trace(np.asarray(target.covariance)[:3, :3]), 0.0)))
-        return std_m <= self.options.anchor_max_position_std_m
+        return target.covariance is None or _sigma(target.covariance) <= self.options.anchor_max_position_std_m
 
     def _jumped(self, a: Transform, b: Transform) -> bool:
         return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
