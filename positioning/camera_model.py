@@ -80,20 +80,29 @@ def project_normalised(T_camera_world: Transform, points_world: np.ndarray) -> t
     return xy, z
 
 
-def _distortion_of(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV's plumb_bob / rational_polynomial distortion of normalised coordinates."""
+def _distortion_with_jacobian(x: np.ndarray, y: np.ndarray, d: np.ndarray):
+    """OpenCV's plumb_bob / rational_polynomial distortion of normalised coordinates, and
+    its 2x2 Jacobian d(xd, yd)/d(x, y) in closed form: (xd, yd, d00, d01, d10, d11)."""
     k1, k2, p1, p2, k3, k4, k5, k6 = d
     r2 = x * x + y * y
-    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+    numerator, denominator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = numerator / denominator
+    # d(radial)/d(r2), and d(r2)/dx = 2x, d(r2)/dy = 2y
+    slope = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) - radial * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / denominator
+    xy = x * y
+    xd = x * radial + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
+    cross = 2 * xy * slope + 2 * p1 * x + 2 * p2 * y  # d(xd)/dy = d(yd)/dx
+    d00 = radial + 2 * x * x * slope + 2 * p1 * y + 6 * p2 * x
+    d11 = radial + 2 * y * y * slope + 6 * p1 * y + 2 * p2 * x
+    return xd, yd, d00, cross, cross, d11
 
 
 def project_with_jacobian(points_camera: np.ndarray, calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (N, 2) of camera-frame points (N, 3), and d(pixel)/d(point) (N, 2, 3).
 
     The model of ``project`` with up to 8 coefficients, vectorised for thousands of
-    points; the distortion's 2x2 Jacobian by central differences."""
+    points; the distortion's 2x2 Jacobian in closed form."""
     d = np.zeros(8)
     coefficients = np.asarray(calibration.distortion, np.float64).ravel()
     if len(coefficients) > 8 and np.any(coefficients[8:] != 0):
@@ -102,15 +111,8 @@ def project_with_jacobian(points_camera: np.ndarray, calibration: CameraCalibrat
     k = calibration.camera_matrix
     z = points_camera[:, 2]
     x, y = points_camera[:, 0] / z, points_camera[:, 1] / z
-    xd, yd = _distortion_of(x, y, d)
-    h = 1e-6
-    ax, ay = _distortion_of(x + h, y, d)
-    bx, by = _distortion_of(x - h, y, d)
-    cx, cy = _distortion_of(x, y + h, d)
-    ex, ey = _distortion_of(x, y - h, d)
+    xd, yd, d00, d01, d10, d11 = _distortion_with_jacobian(x, y, d)
     # d(distorted)/d(x, y), then the camera matrix (fx, skew, fy) on its rows
-    d00, d10 = (ax - bx) / (2 * h), (ay - by) / (2 * h)
-    d01, d11 = (cx - ex) / (2 * h), (cy - ey) / (2 * h)
     m00, m01 = k[0, 0] * d00 + k[0, 1] * d10, k[0, 0] * d01 + k[0, 1] * d11
     m10, m11 = k[1, 1] * d10, k[1, 1] * d11
     # times d(x, y)/d(X, Y, Z) = [[1/z, 0, -x/z], [0, 1/z, -y/z]]

@@ -164,8 +164,10 @@ MIN_PROFILE_CONTRAST = 25.0  # grey levels between the black border and the whit
 MIN_EDGE_SAMPLES = 6
 
 
-def _edge_points(image_f32: np.ndarray, corners: np.ndarray, half_width_px: float) -> list[np.ndarray]:
-    """Sub-pixel points (K_k, 2) of the black-to-white step along each edge k -> k+1."""
+def _edge_points(image_f32: np.ndarray, corners: np.ndarray, half_width_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel points (4, K, 2) of the black-to-white step on K profiles across each
+    edge k -> k+1, and which are clean steps (4, K): none on an edge with clean steps
+    over less than half its length."""
     directions = np.roll(corners, -1, axis=0) - corners
     length = float(np.linalg.norm(directions, axis=1).min())
     count = max(MIN_EDGE_SAMPLES, int(length * (1 - 2 * EDGE_END_FRACTION)))
@@ -186,51 +188,55 @@ def _edge_points(image_f32: np.ndarray, corners: np.ndarray, half_width_px: floa
     # Keep clean steps only: enough contrast and exactly one crossing (not noise, not a
     # second edge, not glare or an occluder).
     good = (bright - dark >= MIN_PROFILE_CONTRAST) & (rising.sum(axis=2) == 1)
-    edges = []
-    for k in range(4):
-        rows = np.flatnonzero(good[k])
-        if len(rows) < max(MIN_EDGE_SAMPLES, count // 2):  # not a clean edge over half its length
-            edges.append(np.empty((0, 2)))
-            continue
-        # The step's position from its area, not from where it crosses 50 %: pixels
-        # average light over their area, which keeps the area of a step (blurred or not)
-        # but pulls the 50 % crossing towards pixel centres by up to 0.08 px. The plateau
-        # levels are per edge (means), so their noise does not enter each profile.
-        dark_level, bright_level = dark[k, rows].mean(), bright[k, rows].mean()
-        normalised = (profiles[k, rows] - dark_level) / (bright_level - dark_level)
-        area = np.sum(normalised[:, 1:] + normalised[:, :-1], axis=1) * (0.5 * PROFILE_STEP_PX)
-        offset = across[-1] - area
-        edges.append(base[k, rows] + offset[:, None] * outward[k])
-    return edges
+    # The step's position from its area, not from where it crosses 50 %: pixels average
+    # light over their area, which keeps the area of a step (blurred or not) but pulls the
+    # 50 % crossing towards pixel centres by up to 0.08 px. The plateau levels are per
+    # edge (means over its clean profiles), so their noise does not enter each profile.
+    clean = good.sum(axis=1)
+    weights = good / np.maximum(clean, 1)[:, None]
+    dark_level, bright_level = (dark * weights).sum(axis=1), (bright * weights).sum(axis=1)
+    contrast = np.maximum(bright_level - dark_level, 1e-6)
+    # trapezoids: the sum minus half the two end samples
+    total = profiles.sum(axis=2, dtype=np.float64) - 0.5 * (profiles[..., 0] + profiles[..., -1])
+    area = (total - dark_level[:, None] * (len(across) - 1)) / contrast[:, None] * PROFILE_STEP_PX
+    points = base + (across[-1] - area)[..., None] * outward[:, None, :]
+    enough = clean >= max(MIN_EDGE_SAMPLES, count // 2)
+    return points, good & enough[:, None]
 
 
-def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(point, unit direction) of the total-least-squares line, one outlier pass."""
+def _fit_lines(points: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(points (4, 2), unit directions (4, 2)) of the total-least-squares lines through
+    the ``use``d points (4, K) of each edge's points (4, K, 2), after one outlier pass;
+    None when an edge has fewer than ``MIN_EDGE_SAMPLES``."""
     for _ in range(2):
-        if len(points) < MIN_EDGE_SAMPLES:
+        count = use.sum(axis=1)
+        if count.min() < MIN_EDGE_SAMPLES:
             return None
-        centre = points.mean(axis=0)
-        dx, dy = (points - centre).T
-        sxx, syy, sxy = dx @ dx, dy @ dy, dx @ dy
+        weight = use / count[:, None]
+        centre = np.einsum("kn,knd->kd", weight, points)
+        dx, dy = points[..., 0] - centre[:, 0:1], points[..., 1] - centre[:, 1:2]
+        sxx, syy, sxy = (weight * dx * dx).sum(axis=1), (weight * dy * dy).sum(axis=1), (weight * dx * dy).sum(axis=1)
         # Direction of the largest spread of a 2x2 scatter matrix, in closed form.
         angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-        direction = np.array([np.cos(angle), np.sin(angle)])
-        distance = np.abs(dx * -direction[1] + dy * direction[0])
-        spread = 1.25 * distance.mean() + 1e-12  # ~sigma for Gaussian scatter
-        keep = distance <= 3.0 * spread
-        if keep.all():
+        direction = np.column_stack([np.cos(angle), np.sin(angle)])
+        distance = np.abs(dx * -direction[:, 1:2] + dy * direction[:, 0:1])
+        spread = 1.25 * (weight * distance).sum(axis=1) + 1e-12  # ~sigma for Gaussian scatter
+        keep = use & (distance <= 3.0 * spread[:, None])
+        if np.array_equal(keep, use):
             break
-        points = points[keep]
+        use = keep
     return centre, direction
 
 
-def _intersect(line_a, line_b) -> np.ndarray | None:
-    (pa, da), (pb, db) = line_a, line_b
-    matrix = np.column_stack([da, -db])
-    if abs(np.linalg.det(matrix)) < 1e-9:
+def _corners_of(centre: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
+    """Corner k where line k-1 (into it) meets line k (out of it), by Cramer's rule; None
+    when two neighbours are parallel."""
+    pa, da = centre[[3, 0, 1, 2]], direction[[3, 0, 1, 2]]
+    determinant = direction[:, 0] * da[:, 1] - da[:, 0] * direction[:, 1]
+    if np.abs(determinant).min() < 1e-9:
         return None
-    s, _ = np.linalg.solve(matrix, pb - pa)
-    return pa + s * da
+    gap = centre - pa
+    return pa + ((direction[:, 0] * gap[:, 1] - gap[:, 0] * direction[:, 1]) / determinant)[:, None] * da
 
 
 def refine_corners(image: np.ndarray, detection: TagDetection, calibration: CameraCalibration | None = None,
@@ -256,30 +262,19 @@ def refine_corners(image: np.ndarray, detection: TagDetection, calibration: Came
     shift = np.array([x0, y0], dtype=np.float64)
     corners = detection.corners.copy()
     for _ in range(passes):
-        size = float(np.mean(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)))
+        size = float(np.mean(np.linalg.norm(corners[[1, 2, 3, 0]] - corners, axis=1)))
         half_width = min(0.4 * size / cells, 4.0)
         if half_width < 1.0:
             return detection  # cells under ~2.5 px: the library's corners are as good
-        edges = _edge_points(image_f32, corners - shift, half_width)
-        counts = [len(points) for points in edges]
-        if min(counts) < MIN_EDGE_SAMPLES:
-            return None
-        points = np.concatenate(edges) + shift
+        points, use = _edge_points(image_f32, corners - shift, half_width)
         if calibration is not None:
-            points = undistort(points, calibration)
-        lines = []
-        for chunk in np.split(points, np.cumsum(counts)[:-1]):
-            line = _fit_line(chunk)
-            if line is None:
-                return None
-            lines.append(line)
-        new = []
-        for k in range(4):  # corner k is where edge k-1 (into it) meets edge k (out of it)
-            point = _intersect(lines[k - 1], lines[k])
-            if point is None:
-                return None
-            new.append(point)
-        new = np.array(new)
+            points = undistort(points.reshape(-1, 2) + shift, calibration).reshape(points.shape)
+        else:
+            points = points + shift
+        lines = _fit_lines(points, use)
+        new = None if lines is None else _corners_of(*lines)
+        if new is None:
+            return None
         if calibration is not None:
             new = distort(new, calibration)
         if np.abs(new - detection.corners).max() > max(2.0, 0.05 * size):

@@ -146,8 +146,8 @@ def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translat
     if np.any(points[:, 2] <= 1e-3):
         return None
     pixels, point_j = project_with_jacobian(points, calibration)
-    tangent = np.einsum("nij,nj->ni", point_j, model.tangents @ rotation.T)
-    across = np.einsum("nij,nj->ni", point_j, model.normals @ rotation.T) * model.cell_m[:, None]
+    tangent = np.matmul(point_j, (model.tangents @ rotation.T)[:, :, None])[:, :, 0]
+    across = np.matmul(point_j, (model.normals @ rotation.T)[:, :, None])[:, :, 0] * model.cell_m[:, None]
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-300
     normal *= np.where(np.sum(normal * across, axis=1) < 0, -1.0, 1.0)[:, None]
@@ -198,9 +198,11 @@ def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translat
     rows = np.flatnonzero(good)
     kept = index[rows]
     # d(offset)/d(omega, delta_t): the projected edge point moves by J (omega x X_c + delta_t).
-    point = points[kept]
-    n_j = np.einsum("ni,nij->nj", normal[kept], point_j[kept])  # (K, 3): d(offset)/d(X_c)
-    jacobian = np.concatenate([np.cross(point, n_j), n_j], axis=1)  # n_j . (omega x X) = omega . (X x n_j)
+    (x, y, z), n = points[kept].T, normal[kept]
+    n_j = n[:, 0:1] * point_j[kept, 0] + n[:, 1:2] * point_j[kept, 1]  # (K, 3): d(offset)/d(X_c)
+    a, b, c = n_j.T
+    # n_j . (omega x X) = omega . (X x n_j)
+    jacobian = np.column_stack([y * c - z * b, z * a - x * c, x * b - y * a, n_j])
     return offset[rows], jacobian, kept
 
 
@@ -244,7 +246,7 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
         sigma = 1.4826 * np.median(np.abs(offset - centre)) + 1e-3
         inlier = np.abs(offset - centre) <= 4.0 * sigma + 0.05
         a, b = jacobian[inlier], offset[inlier]
-        step, *_ = np.linalg.lstsq(a, b, rcond=None)
+        step = np.linalg.solve(a.T @ a, a.T @ b)  # normal equations: 6 unknowns, well posed
         if not np.all(np.isfinite(step)):
             return None
         small = _rotation_of(step[:3])

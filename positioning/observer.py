@@ -22,6 +22,7 @@ are therefore the same edge-aligned poses with the same checks. Per image:
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -273,9 +274,11 @@ class TargetObserver:
             x1, y1 = np.ceil(high + reach).astype(int)
             near = [d for d in self._ours(self._detector.detect(image, (x0, y0, x1, y1), 1.0))
                     if d.tag_id != seed.tag_id]
-            attempts = [self._refine(image, near)] if near else []
-            attempts += [self._complete(image, [seed], candidate)
-                         for candidate in single_plane_candidates([seed], self.target, self.calibration)]
+            # searched in this order, each only if the ones before gave no pose
+            attempts = itertools.chain(
+                [self._refine(image, near)] if near else [],
+                (self._complete(image, [seed], candidate)
+                 for candidate in single_plane_candidates([seed], self.target, self.calibration)))
             for extra in attempts:
                 if not extra:
                     continue
