@@ -10,16 +10,22 @@ start with one line naming the field, the value and where it came from.
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 import socket
 import sys
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from scipy.spatial.transform import Rotation
 
 from cubeloc.errors import ConfigError
 from drivers.base import CameraSettings
+from positioning.frames import RobotFrames
+from positioning.geometry import Transform
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -28,6 +34,11 @@ else:  # pragma: no cover - Python 3.10
 
 DEFAULT_CONFIG_PATH = Path("/etc/cubeloc/cubeloc.toml")
 ENV_PREFIX = "CUBELOC_"
+# A hand-typed quaternion to 4 decimals is within 1e-4 of unit norm; further is a typo.
+QUATERNION_TOLERANCE = 1e-3
+MAX_PLACEMENT_M = 1.0e4
+MAX_MOUNT_M = 10.0  # a camera further from the robot's base is a unit slip (mm for m)
+FRAME_NAME = re.compile(r"[A-Za-z_/][A-Za-z0-9_/]*")
 
 
 class Section(BaseModel):
@@ -102,6 +113,94 @@ class DaemonConfig(Section):
     timeout_streak: int = Field(3, ge=1, le=1000, description="frame timeouts in a row that mean: reopen the camera")
 
 
+class Placement(Section):
+    """A fixed rigid transform, measured by hand: ``xyz`` in metres and at most one of
+    ``quaternion`` ([x, y, z, w], unit), ``rpy`` (radians) or ``rpy_deg`` (degrees): roll
+    about X, pitch about Y, yaw about Z, applied in that order about the fixed axes (URDF,
+    tf2). No rotation given: the identity."""
+
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    quaternion: tuple[float, float, float, float] | None = None
+    rpy: tuple[float, float, float] | None = None
+    rpy_deg: tuple[float, float, float] | None = None
+
+    @field_validator("xyz", "quaternion", "rpy", "rpy_deg")
+    @classmethod
+    def _finite(cls, value):
+        if value is not None and not all(math.isfinite(v) for v in value):
+            raise ValueError("every number must be finite")
+        return value
+
+    @field_validator("xyz")
+    @classmethod
+    def _plausible(cls, value):
+        if max(abs(v) for v in value) > MAX_PLACEMENT_M:
+            raise ValueError(f"more than {MAX_PLACEMENT_M:g} m: metres expected")
+        return value
+
+    @field_validator("quaternion")
+    @classmethod
+    def _unit(cls, value):
+        if value is not None:
+            norm = math.sqrt(sum(v * v for v in value))
+            if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+                raise ValueError(f"not a unit quaternion [x, y, z, w] (norm {norm:.6g})")
+        return value
+
+    @model_validator(mode="after")
+    def _one_rotation(self):
+        given = [name for name in ("quaternion", "rpy", "rpy_deg") if getattr(self, name) is not None]
+        if len(given) > 1:
+            raise ValueError(f"give one rotation, not {' and '.join(given)}")
+        return self
+
+    def transform(self) -> Transform:
+        if self.quaternion is not None:
+            rotation = Rotation.from_quat(self.quaternion)  # normalised (within the tolerance)
+        elif self.rpy is not None or self.rpy_deg is not None:
+            rotation = Rotation.from_euler("xyz", self.rpy_deg or self.rpy, degrees=self.rpy_deg is not None)
+        else:
+            rotation = Rotation.identity()
+        return Transform(rotation.as_matrix(), np.array(self.xyz))
+
+
+class FramesConfig(Section):
+    """The robot's frames (REP 105). With ``base_from_camera`` or ``map_from_target`` set,
+    ``map`` -> ``base_link`` is published beside the camera's pose (``base_pose``); the one
+    not set is the identity."""
+
+    base_from_camera: Placement | None = Field(None, description="the camera's mount on the robot: T_base_camera")
+    map_from_target: Placement | None = Field(None, description="where the target stands in the map: T_map_target")
+    map_frame: str = "map"
+    base_frame: str = "base_link"
+    camera_frame: str = "camera_optical"
+
+    @field_validator("map_frame", "base_frame", "camera_frame")
+    @classmethod
+    def _frame_name(cls, value: str) -> str:
+        if not FRAME_NAME.fullmatch(value):
+            raise ValueError("a frame name is letters, digits, '_' and '/' (not starting with a digit)")
+        return value
+
+    @field_validator("base_from_camera")
+    @classmethod
+    def _on_the_robot(cls, value: Placement | None) -> Placement | None:
+        if value is not None and max(abs(v) for v in value.xyz) > MAX_MOUNT_M:
+            raise ValueError(f"xyz {list(value.xyz)} puts the camera more than {MAX_MOUNT_M:g} m from the base: "
+                             "metres expected")
+        return value
+
+    @property
+    def enabled(self) -> bool:
+        return self.base_from_camera is not None or self.map_from_target is not None
+
+    def robot_frames(self) -> RobotFrames:
+        identity = Placement()
+        return RobotFrames((self.base_from_camera or identity).transform(),
+                           (self.map_from_target or identity).transform(),
+                           self.map_frame, self.base_frame, self.camera_frame)
+
+
 class LoggingConfig(Section):
     level: Literal["debug", "info", "warning", "error"] = "info"
     format: Literal["auto", "json", "console"] = "auto"
@@ -113,6 +212,7 @@ class Config(Section):
     positioning: PositioningConfig = PositioningConfig()
     zenoh: ZenohConfig = ZenohConfig()
     daemon: DaemonConfig = DaemonConfig()
+    frames: FramesConfig = FramesConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @field_validator("name")

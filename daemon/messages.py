@@ -1,4 +1,5 @@
-"""The wire payloads: ``cubeloc.pose/1`` and ``cubeloc.status/1`` (JSON, UTF-8).
+"""The wire payloads: ``cubeloc.pose/1`` (world -> camera), ``cubeloc.pose/2`` (map ->
+base_link, with ``[frames]``) and ``cubeloc.status/1`` (JSON, UTF-8).
 
 The pose schema is a user-facing contract (docs: interfaces.md). A pose is checked before
 it is encoded: a NaN, an infinity or a non-unit quaternion never reaches the wire; such a
@@ -15,12 +16,16 @@ from typing import Any
 import numpy as np
 
 from positioning.estimator import PoseEstimate
+from positioning.frames import RobotFrames
+from positioning.geometry import Transform
 
 POSE_SCHEMA = "cubeloc.pose/1"
+BASE_POSE_SCHEMA = "cubeloc.pose/2"  # map -> base_link: /1's fields and camera_frame_id
 STATUS_SCHEMA = "cubeloc.status/1"
 
 # A camera further than this from the world origin is a solver failure, not a pose.
 MAX_POSITION_M = 1.0e4
+MAX_MAP_POSITION_M = 1.0e5  # a facility map's origin may be far from the target
 QUATERNION_NORM_TOLERANCE = 1e-6
 
 
@@ -36,13 +41,30 @@ def _finite_list(values: np.ndarray, what: str) -> list[float]:
 
 
 def pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate) -> dict[str, Any]:
-    """The ``cubeloc.pose/1`` document for one frame, validated."""
+    """The ``cubeloc.pose/1`` document for one frame (world -> camera), validated."""
+    return _pose_document(POSE_SCHEMA, seq, stamp_ns, estimate, estimate.T_world_camera, estimate.covariance,
+                          "world", "camera")
+
+
+def base_pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames) -> dict[str, Any]:
+    """The ``cubeloc.pose/2`` document: the robot's base in the map (``map`` -> ``base_link``
+    under ``frames``' names), the same ``seq`` and ``stamp_ns`` as the camera's pose, and
+    ``camera_frame_id`` naming the frame the vision measured. Validated as /1."""
+    transform, covariance = frames.base_in_map(estimate.T_world_camera, estimate.covariance)
+    document = _pose_document(BASE_POSE_SCHEMA, seq, stamp_ns, estimate, transform, covariance,
+                              frames.map_frame, frames.base_frame, max_position_m=MAX_MAP_POSITION_M)
+    document["camera_frame_id"] = frames.camera_frame
+    return document
+
+
+def _pose_document(schema: str, seq: int, stamp_ns: int, estimate: PoseEstimate, transform: Transform,
+                   covariance: np.ndarray | None, frame_id: str, child_frame_id: str,
+                   max_position_m: float = MAX_POSITION_M) -> dict[str, Any]:
     if stamp_ns <= 0:
         raise UnpublishablePose(f"stamp_ns {stamp_ns} is not a capture time")
-    transform = estimate.T_world_camera
     position = _finite_list(transform.translation, "position")
-    if math.hypot(*position) > MAX_POSITION_M:
-        raise UnpublishablePose(f"position {position} is more than {MAX_POSITION_M:g} m from the target")
+    if math.hypot(*position) > max_position_m:
+        raise UnpublishablePose(f"position {position} is more than {max_position_m:g} m from the origin")
     rotation = np.asarray(transform.rotation)
     if not np.all(np.isfinite(rotation)):
         raise UnpublishablePose("rotation is not finite")
@@ -57,24 +79,24 @@ def pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate) -> dict[str, A
     rms = float(estimate.reproj_rms_px)
     if not math.isfinite(rms) or rms < 0:
         raise UnpublishablePose(f"reproj_rms_px {rms} is not a finite non-negative number")
-    covariance = None
-    if estimate.covariance is not None:
-        cov = np.asarray(estimate.covariance, dtype=np.float64)
+    values = None
+    if covariance is not None:
+        cov = np.asarray(covariance, dtype=np.float64)
         if cov.shape != (6, 6):
             raise UnpublishablePose(f"covariance has shape {cov.shape}, expected (6, 6)")
-        covariance = _finite_list(cov, "covariance")
+        values = _finite_list(cov, "covariance")
     return {
-        "schema": POSE_SCHEMA,
+        "schema": schema,
         "seq": int(seq),
         "stamp_ns": int(stamp_ns),
-        "frame_id": "world",
-        "child_frame_id": "camera",
+        "frame_id": frame_id,
+        "child_frame_id": child_frame_id,
         "position": position,
         "orientation": orientation,
         "state": estimate.state.value,
         "planes": int(estimate.planes),
         "reproj_rms_px": round(rms, 4),
-        "covariance": covariance,
+        "covariance": values,
     }
 
 
@@ -85,6 +107,10 @@ def encode(document: dict[str, Any]) -> bytes:
 
 def pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate) -> bytes:
     return encode(pose_payload(seq, stamp_ns, estimate))
+
+
+def base_pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames) -> bytes:
+    return encode(base_pose_payload(seq, stamp_ns, estimate, frames))
 
 
 @dataclass(frozen=True)

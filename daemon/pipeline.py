@@ -3,7 +3,8 @@
 The loop knows positioning only through ``positioning.estimator.FrameProcessor``: the
 tracker (``mode = "tracker"``, the default) or the single-frame target pose (``"target"``);
 both see the target through the same ``positioning.observer.TargetObserver``.
-A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/1``;
+A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/1``
+and, with ``[frames]``, the robot's base in the map as ``cubeloc.pose/2`` (same seq);
 any other frame publishes nothing, and its status word shows on ``status``.
 
 This loop is also the systemd watchdog's only source (daemon/sdnotify.py): it pets the
@@ -23,9 +24,10 @@ import structlog
 from daemon.capture import CaptureThread
 from daemon.frame_queue import CapturedFrame, LatestFrameSlot
 from daemon.loop_stats import LoopStats
-from daemon.messages import UnpublishablePose, pose_message
+from daemon.messages import UnpublishablePose, base_pose_message, pose_message
 from daemon.sdnotify import SystemdNotifier
 from positioning.estimator import FrameProcessor, FrameResult
+from positioning.frames import RobotFrames
 
 log = structlog.get_logger()
 
@@ -48,7 +50,13 @@ class ProcessingLoop:
         expected_size: tuple[int, int],  # (width, height) of the calibration
         capture_stall_s: float,
         summary_period_s: float = 1.0,
+        frames: RobotFrames | None = None,
+        publish_base_pose: Callable[[bytes], None] | None = None,
     ) -> None:
+        if (frames is None) != (publish_base_pose is None):
+            raise ValueError("frames and publish_base_pose go together")
+        self._frames = frames
+        self._publish_base_pose = publish_base_pose
         self._processor = processor
         self._slot = slot
         self._capture = capture
@@ -169,7 +177,16 @@ class ProcessingLoop:
             self._stats.record_rejected()
             self._stats.record_frame(item.seq, "rejected", str(exc), result.tags_seen)
             return
+        base_payload = None
+        if self._frames is not None:
+            try:
+                base_payload = base_pose_message(item.seq, frame.stamp_ns, result.estimate, self._frames)
+            except UnpublishablePose as exc:  # the camera's pose was fine: [frames] is not
+                bound.warning("base pose not published", reason=str(exc))
+                self._stats.record_rejected()
         self._publish_pose(payload)
+        if base_payload is not None:
+            self._publish_base_pose(base_payload)
         self._stats.record_pose((time.monotonic_ns() - item.received_monotonic_ns) / 1e6)
         # On status, a frame with a pose shows the pose's state ("target", "tracking"...).
         self._stats.record_frame(item.seq, result.estimate.state.value, result.detail, result.tags_seen,

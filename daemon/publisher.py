@@ -2,13 +2,14 @@
 
 ========================  ============  ==============================================
 ``pose``                  publication   ``cubeloc.pose/1``, every frame with a pose
+``base_pose``             publication   ``cubeloc.pose/2`` (map -> base_link), with ``[frames]``
 ``status``                publication   ``cubeloc.status/1``, once a second
 ``alive``                 liveliness    present while the daemon runs
 ``calibration``           queryable     the camera_info YAML in use
 ``reset``                 queryable     re-initialise on the target (deny it with Zenoh ACL)
 ========================  ============  ==============================================
 
-``pose`` uses congestion control DROP and express with a high priority: a slow or absent
+``pose`` and ``base_pose`` use congestion control DROP and express with a high priority: a slow or absent
 subscriber costs a message, never a stalled loop.
 """
 
@@ -39,6 +40,7 @@ class ZenohPublisher:
         name: str,
         calibration_yaml: str,
         request_reset: Callable[[], bool],
+        base_pose: bool = False,
     ) -> None:
         import zenoh
 
@@ -48,13 +50,8 @@ class ZenohPublisher:
         self.calibration_yaml = calibration_yaml  # replaced whole on a reload (SIGHUP)
         self._request_reset = request_reset
         self._session = session
-        self._pose = session.declare_publisher(
-            f"{prefix}/pose",
-            encoding=zenoh.Encoding.APPLICATION_JSON,
-            congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.INTERACTIVE_HIGH,
-            express=True,
-        )
+        self._pose = self._pose_publisher(f"{prefix}/pose")
+        self._base_pose = self._pose_publisher(f"{prefix}/base_pose") if base_pose else None
         self._status = session.declare_publisher(
             f"{prefix}/status",
             encoding=zenoh.Encoding.APPLICATION_JSON,
@@ -67,8 +64,20 @@ class ZenohPublisher:
         self._closed = False
         log.info("zenoh keys declared", prefix=prefix)
 
+    def _pose_publisher(self, key: str):
+        return self._session.declare_publisher(
+            key,
+            encoding=self._zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=self._zenoh.CongestionControl.DROP,
+            priority=self._zenoh.Priority.INTERACTIVE_HIGH,
+            express=True,
+        )
+
     def publish_pose(self, payload: bytes) -> None:
         self._pose.put(payload)
+
+    def publish_base_pose(self, payload: bytes) -> None:
+        self._base_pose.put(payload)
 
     def publish_status(self, payload: bytes) -> None:
         self._status.put(payload)
@@ -117,7 +126,9 @@ class ZenohPublisher:
         if self._closed:
             return
         self._closed = True
-        for entity in (self._reset, self._calibration, self._alive, self._status, self._pose):
+        for entity in (self._reset, self._calibration, self._alive, self._status, self._pose, self._base_pose):
+            if entity is None:
+                continue
             try:
                 entity.undeclare()
             except self._zenoh.ZError as exc:  # the session may already be closing

@@ -90,8 +90,12 @@ class Daemon:
                 notifier=self.notifier, stop=self.stop,
                 expected_size=self.prepared.calibration.size,
                 capture_stall_s=config.camera.frame_timeout_s + CAPTURE_STALL_MARGIN_S,
+                frames=config.frames.robot_frames() if config.frames.enabled else None,
+                publish_base_pose=(lambda payload: self._publisher.publish_base_pose(payload))
+                if config.frames.enabled else None,
             )
-            self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset)
+            self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset,
+                                             base_pose=config.frames.enabled)
             self._loop = loop
             log.info("daemon started", name=config.name, source=config.camera.source, version=__version__,
                      calibration=str(config.positioning.calibration), target=str(config.positioning.target))

@@ -32,7 +32,7 @@ from drivers.base import (
     StreamBroken,
 )
 from fakes import render_view
-from positioning.geometry import look_at
+from positioning.geometry import Transform, look_at
 from positioning.target import default_cube_yaml
 
 CAMERA_POSITION = np.array([1.2, -1.0, 0.9])
@@ -97,10 +97,11 @@ class Script:
         return ScriptedCamera(self.image, step, self.period_s, self.log)
 
 
-def make_prepared(tmp_path, port: int, **daemon):
+def make_prepared(tmp_path, port: int, frames: dict | None = None, **daemon):
     write_camera_info(tmp_path / "camera.yaml", paper_camera())
     (tmp_path / "target.yaml").write_text(default_cube_yaml())
     config = Config.model_validate({
+        **({"frames": frames} if frames is not None else {}),
         "name": "looptest",
         "camera": {"source": "synthetic:static?seconds=1"},  # (preflight builds it; the Script stands in)
         "positioning": {"calibration": tmp_path / "camera.yaml", "target": tmp_path / "target.yaml"},
@@ -121,8 +122,10 @@ class Listener:
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
         self.session = zenoh.open(conf)
-        self.poses, self.status = [], []
+        self.poses, self.status, self.base_poses = [], [], []
         self.session.declare_subscriber("cubeloc/*/pose", lambda s: self.poses.append(json.loads(s.payload.to_bytes())))
+        self.session.declare_subscriber("cubeloc/*/base_pose",
+                                        lambda s: self.base_poses.append(json.loads(s.payload.to_bytes())))
         self.session.declare_subscriber("cubeloc/*/status", lambda s: self.status.append(json.loads(s.payload.to_bytes())))
 
     def wait_for(self, predicate, timeout_s=20.0):
@@ -250,3 +253,36 @@ def test_reset_can_be_denied_by_zenoh_access_control(tmp_path, cube_image, liste
     finally:
         stop.set()
         thread.join(5.0)
+
+
+def test_with_frames_the_robots_base_in_the_map_goes_out_beside_the_camera_pose(tmp_path, cube_image, listeners):
+    # the camera 0.3 m ahead of the base and 1.1 m up, the cube 5 m into the map and turned 90 deg
+    mount = {"xyz": [0.3, 0.0, 1.1], "rpy_deg": [-90, 0, -90]}
+    placement = {"xyz": [5.0, 2.0, 0.0], "rpy_deg": [0, 0, 90]}
+    port = free_port()
+    prepared = make_prepared(tmp_path, port, frames={"base_from_camera": mount, "map_from_target": placement,
+                                                     "base_frame": "robot7/base_link"})
+    _, stop, thread, _ = start_daemon(prepared, Script(cube_image, [10_000]))
+    listener = listeners(port)
+    try:
+        assert listener.wait_for(lambda: len(listener.base_poses) >= 3 and len(listener.poses) >= 3)
+    finally:
+        stop.set()
+        thread.join(5.0)
+    frames = prepared.config.frames.robot_frames()
+    truth = frames.T_map_target @ look_at(CAMERA_POSITION, np.zeros(3)) @ frames.T_base_camera.inverse()
+    cameras = {p["seq"]: p for p in listener.poses}
+    for base in listener.base_poses:
+        assert base["schema"] == "cubeloc.pose/2"
+        assert (base["frame_id"], base["child_frame_id"], base["camera_frame_id"]) == \
+            ("map", "robot7/base_link", "camera_optical")
+        assert np.linalg.norm(np.array(base["position"]) - truth.translation) < 0.01
+        camera = cameras.get(base["seq"])
+        if camera is None:
+            continue  # that camera pose arrived before the listener did
+        assert camera["stamp_ns"] == base["stamp_ns"]
+        T = Transform.from_quaternion(camera["position"], camera["orientation"])
+        moved, covariance = frames.base_in_map(T, np.array(camera["covariance"]).reshape(6, 6))
+        np.testing.assert_allclose(base["position"], moved.translation, atol=1e-9)
+        np.testing.assert_allclose(np.array(base["covariance"]).reshape(6, 6), covariance, rtol=1e-6, atol=1e-15)
+    assert set(cameras) & {b["seq"] for b in listener.base_poses}

@@ -218,6 +218,7 @@ def _config(tmp_path, extra: str = "", calibration: str | None = None) -> str:
         ("unknown_source", "unknown camera source"),
         ("missing_zenoh_file", "zenoh config file"),
         ("bad_source_option", "unknown option(s) bogus"),
+        ("bad_mount", "frames.base_from_camera.quaternion = [0, 0, 0.5, 0.5]: Value error, not a unit quaternion"),
     ],
 )
 def test_bad_config_exits_2_with_one_line(tmp_path, cli, case, expect):
@@ -233,6 +234,7 @@ def test_bad_config_exits_2_with_one_line(tmp_path, cli, case, expect):
         "unknown_source": good.replace("synthetic:paper", "webcam:0"),
         "missing_zenoh_file": _config(tmp_path, f"config_file = \"{tmp_path / 'zenoh.json5'}\"\n"),
         "bad_source_option": good.replace("synthetic:paper", "synthetic:paper?bogus=1"),
+        "bad_mount": good + "[frames.base_from_camera]\nxyz = [0.3, 0, 1.1]\nquaternion = [0, 0, 0.5, 0.5]\n",
     }[case]
     path = tmp_path / "case.toml"
     path.write_text(config_text)

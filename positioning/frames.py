@@ -1,0 +1,67 @@
+"""The robot's frames: from the camera's pose in the target's frame to the base's in the map.
+
+The vision gives ``T_world_camera`` (world = the target's frame). A robot integrator wants
+``T_map_base`` (REP 105: ``map`` -> ``base_link``):
+
+    T_map_base = T_map_target @ T_world_camera @ inverse(T_base_camera)
+
+with ``T_map_target`` where the target stands in the facility map and ``T_base_camera``
+the camera's mount on the robot (both fixed, measured once).
+
+Covariances are 6x6 over (position, rotation) of the child frame expressed in the parent
+frame, ROS ``PoseWithCovariance`` order: the perturbation is ``p' = p + dp`` and
+``R' = exp([dtheta]x) R`` with ``dp`` and ``dtheta`` in the parent frame (the convention of
+``positioning.estimator.PoseEstimate.covariance``). Moving the child by a fixed mount turns
+a rotation error into a position error at the lever arm; changing the parent rotates both
+blocks. Both are linear maps (the pose's adjoint), so the covariance goes through exactly
+to first order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from positioning.geometry import Transform
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def reframe_covariance(covariance: np.ndarray, T_parent_child: Transform, T_child_new: Transform,
+                       T_newparent_parent: Transform) -> np.ndarray:
+    """The covariance of ``T_newparent_parent @ T_parent_child @ T_child_new`` from that of
+    ``T_parent_child`` (6x6, position then rotation, both in the parent frame); the two
+    outer transforms are exact (no uncertainty of their own)."""
+    lever = T_parent_child.rotation @ T_child_new.translation  # child -> new child, in the parent frame
+    # p_new = p + R t  =>  dp_new = dp + dtheta x (R t) = dp - [R t]x dtheta; dtheta_new = dtheta
+    mount = np.eye(6)
+    mount[:3, 3:] = -_skew(lever)
+    rotate = np.zeros((6, 6))
+    rotate[:3, :3] = rotate[3:, 3:] = T_newparent_parent.rotation
+    jacobian = rotate @ mount
+    out = jacobian @ np.asarray(covariance, np.float64) @ jacobian.T
+    return (out + out.T) / 2.0
+
+
+@dataclass(frozen=True)
+class RobotFrames:
+    """The fixed placements and the frame names of ``map`` -> ``base_link``."""
+
+    T_base_camera: Transform  # the camera's mount: camera-frame points into the base frame
+    T_map_target: Transform  # where the target's frame stands in the map
+    map_frame: str = "map"
+    base_frame: str = "base_link"
+    camera_frame: str = "camera_optical"
+
+    def base_in_map(self, T_world_camera: Transform, covariance: np.ndarray | None
+                    ) -> tuple[Transform, np.ndarray | None]:
+        """``T_map_base`` and its covariance (None when the camera pose has none)."""
+        T_camera_base = self.T_base_camera.inverse()
+        pose = self.T_map_target @ T_world_camera @ T_camera_base
+        if covariance is None:
+            return pose, None
+        return pose, reframe_covariance(covariance, T_world_camera, T_camera_base, self.T_map_target)
