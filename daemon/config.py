@@ -39,6 +39,7 @@ QUATERNION_TOLERANCE = 1e-3
 MAX_PLACEMENT_M = 1.0e4
 MAX_MOUNT_M = 10.0  # a camera further from the robot's base is a unit slip (mm for m)
 FRAME_NAME = re.compile(r"[A-Za-z_/][A-Za-z0-9_/]*")
+ROS_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 class Section(BaseModel):
@@ -201,6 +202,63 @@ class FramesConfig(Section):
                            self.map_frame, self.base_frame, self.camera_frame)
 
 
+def _ros_name(value: str, what: str) -> str:
+    """A ROS 2 name: tokens of letters, digits and '_' (not starting with a digit) joined
+    by '/', optionally absolute (a leading '/')."""
+    body = value[1:] if value.startswith("/") else value
+    if not all(ROS_TOKEN.fullmatch(token) for token in body.split("/")):
+        raise ValueError(f"not a ROS 2 {what}: tokens of letters, digits and '_' (not starting with a digit) "
+                         "joined by '/'")
+    return value
+
+
+class Ros2Topics(Section):
+    """Topic names, relative to ``[ros2] namespace`` unless they start with '/'."""
+
+    pose: str = "cubeloc/pose"  # geometry_msgs/msg/PoseWithCovarianceStamped, map -> base_link
+    odometry: str = "cubeloc/odometry"  # nav_msgs/msg/Odometry, the same pose (the twist is not measured)
+    tf: str = "tf"  # tf2_msgs/msg/TFMessage, map -> base_link, with publish_tf only
+    camera_info: str = "cubeloc/camera_info"  # sensor_msgs/msg/CameraInfo, once, transient local
+
+    @field_validator("pose", "odometry", "tf", "camera_info")
+    @classmethod
+    def _topic(cls, value: str) -> str:
+        return _ros_name(value, "topic name")
+
+
+class Ros2Config(Section):
+    """ROS 2 messages over the daemon's Zenoh session as rmw_zenoh_cpp sends them (daemon/ros2.py)."""
+
+    enabled: bool = False
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the ROS 2 side")
+    namespace: str = Field("", description="the node's namespace, '' or absolute ('/robot7')")
+    node_name: str = "cubeloc"
+    distro: Literal["jazzy", "kilted", "lyrical", "rolling"] = Field(
+        "jazzy", description="whose message definitions give the type hashes in the keys")
+    publish_tf: bool = Field(False, description="map -> base_link on tf: only if nothing else parents base_link")
+    topics: Ros2Topics = Ros2Topics()
+
+    @field_validator("namespace")
+    @classmethod
+    def _namespace(cls, value: str) -> str:
+        if value in ("", "/"):
+            return ""
+        if not value.startswith("/"):
+            raise ValueError("a namespace is absolute: '/robot7', or '' for none")
+        return _ros_name(value.rstrip("/"), "namespace")
+
+    @field_validator("node_name")
+    @classmethod
+    def _node(cls, value: str) -> str:
+        if not ROS_TOKEN.fullmatch(value):
+            raise ValueError("not a ROS 2 node name: letters, digits and '_', not starting with a digit")
+        return value
+
+    def topic(self, name: str) -> str:
+        """The fully qualified name of a topic."""
+        return name if name.startswith("/") else f"{self.namespace}/{name}"
+
+
 class LoggingConfig(Section):
     level: Literal["debug", "info", "warning", "error"] = "info"
     format: Literal["auto", "json", "console"] = "auto"
@@ -213,6 +271,7 @@ class Config(Section):
     zenoh: ZenohConfig = ZenohConfig()
     daemon: DaemonConfig = DaemonConfig()
     frames: FramesConfig = FramesConfig()
+    ros2: Ros2Config = Ros2Config()
     logging: LoggingConfig = LoggingConfig()
 
     @field_validator("name")

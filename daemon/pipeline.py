@@ -3,9 +3,10 @@
 The loop knows positioning only through ``positioning.estimator.FrameProcessor``: the
 tracker (``mode = "tracker"``, the default) or the single-frame target pose (``"target"``);
 both see the target through the same ``positioning.observer.TargetObserver``.
-A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/1``
-and, with ``[frames]``, the robot's base in the map as ``cubeloc.pose/2`` (same seq);
-any other frame publishes nothing, and its status word shows on ``status``.
+A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/1``,
+then handed to the pose sinks (the robot's base in the map as ``cubeloc.pose/2`` with
+``[frames]``, the ROS 2 messages with ``[ros2]``); any other frame publishes nothing, and
+its status word shows on ``status``.
 
 This loop is also the systemd watchdog's only source (daemon/sdnotify.py): it pets the
 watchdog when it processed a frame, or when it found no frame but the capture thread is
@@ -24,10 +25,13 @@ import structlog
 from daemon.capture import CaptureThread
 from daemon.frame_queue import CapturedFrame, LatestFrameSlot
 from daemon.loop_stats import LoopStats
-from daemon.messages import UnpublishablePose, base_pose_message, pose_message
+from daemon.messages import UnpublishablePose, pose_message
 from daemon.sdnotify import SystemdNotifier
-from positioning.estimator import FrameProcessor, FrameResult
-from positioning.frames import RobotFrames
+from positioning.estimator import FrameProcessor, FrameResult, PoseEstimate
+
+# Called with (seq, stamp_ns, estimate) for every pose published on ``pose``: the base's
+# pose in the map (``base_pose``), the ROS 2 messages. One that raises costs its own output.
+PoseSink = Callable[[int, int, PoseEstimate], None]
 
 log = structlog.get_logger()
 
@@ -50,13 +54,9 @@ class ProcessingLoop:
         expected_size: tuple[int, int],  # (width, height) of the calibration
         capture_stall_s: float,
         summary_period_s: float = 1.0,
-        frames: RobotFrames | None = None,
-        publish_base_pose: Callable[[bytes], None] | None = None,
+        pose_sinks: tuple[PoseSink, ...] = (),
     ) -> None:
-        if (frames is None) != (publish_base_pose is None):
-            raise ValueError("frames and publish_base_pose go together")
-        self._frames = frames
-        self._publish_base_pose = publish_base_pose
+        self._pose_sinks = pose_sinks
         self._processor = processor
         self._slot = slot
         self._capture = capture
@@ -177,16 +177,17 @@ class ProcessingLoop:
             self._stats.record_rejected()
             self._stats.record_frame(item.seq, "rejected", str(exc), result.tags_seen)
             return
-        base_payload = None
-        if self._frames is not None:
-            try:
-                base_payload = base_pose_message(item.seq, frame.stamp_ns, result.estimate, self._frames)
-            except UnpublishablePose as exc:  # the camera's pose was fine: [frames] is not
-                bound.warning("base pose not published", reason=str(exc))
-                self._stats.record_rejected()
         self._publish_pose(payload)
-        if base_payload is not None:
-            self._publish_base_pose(base_payload)
+        for sink in self._pose_sinks:
+            try:
+                sink(item.seq, frame.stamp_ns, result.estimate)
+            except UnpublishablePose as exc:  # the camera's pose was fine: what the sink made of it is not
+                bound.warning("pose not published by a sink", sink=getattr(sink, "__name__", repr(sink)),
+                              reason=str(exc))
+                self._stats.record_rejected()
+            except Exception:  # a bug in a sink: logged and counted, the loop goes on
+                bound.exception("pose sink raised", sink=getattr(sink, "__name__", repr(sink)))
+                self._stats.record_error()
         self._stats.record_pose((time.monotonic_ns() - item.received_monotonic_ns) / 1e6)
         # On status, a frame with a pose shows the pose's state ("target", "tracking"...).
         self._stats.record_frame(item.seq, result.estimate.state.value, result.detail, result.tags_seen,

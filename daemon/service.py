@@ -24,10 +24,11 @@ from daemon.cameras import make_camera
 from daemon.capture import CaptureThread
 from daemon.frame_queue import LatestFrameSlot
 from daemon.loop_stats import LoopStats
-from daemon.messages import StatusReport, status_message
+from daemon.messages import StatusReport, base_pose_message, status_message
 from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
 from daemon.preflight import Prepared, make_processor, read_positioning_files
 from daemon.publisher import ZenohPublisher
+from daemon.ros2 import Ros2Publisher
 from daemon.sdnotify import SystemdNotifier
 from daemon.zenoh_session import ZenohUnreachable, open_session
 from drivers.base import Camera, CameraSettings
@@ -72,6 +73,7 @@ class Daemon:
         )
         self._started = time.monotonic()
         self._publisher: ZenohPublisher | None = None
+        self._ros2: Ros2Publisher | None = None
         self._loop: ProcessingLoop | None = None
         self.serving = threading.Event()  # set once the Zenoh keys are declared
 
@@ -90,12 +92,13 @@ class Daemon:
                 notifier=self.notifier, stop=self.stop,
                 expected_size=self.prepared.calibration.size,
                 capture_stall_s=config.camera.frame_timeout_s + CAPTURE_STALL_MARGIN_S,
-                frames=config.frames.robot_frames() if config.frames.enabled else None,
-                publish_base_pose=(lambda payload: self._publisher.publish_base_pose(payload))
-                if config.frames.enabled else None,
+                pose_sinks=self._pose_sinks(),
             )
             self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset,
                                              base_pose=config.frames.enabled)
+            if config.ros2.enabled:
+                self._ros2 = Ros2Publisher(session, config.ros2, config.frames.robot_frames(),
+                                           self.prepared.calibration)
             self._loop = loop
             log.info("daemon started", name=config.name, source=config.camera.source, version=__version__,
                      calibration=str(config.positioning.calibration), target=str(config.positioning.target))
@@ -109,13 +112,35 @@ class Daemon:
             raise self.capture.failure
         return 0
 
+    def _pose_sinks(self) -> tuple:
+        """What each published pose also goes to: the base in the map on ``base_pose``
+        (with ``[frames]``), the ROS 2 messages (with ``[ros2] enabled``)."""
+        config, sinks = self.config, []
+        if config.frames.enabled:
+            frames = config.frames.robot_frames()
+
+            def base_pose(seq: int, stamp_ns: int, estimate) -> None:
+                self._publisher.publish_base_pose(base_pose_message(seq, stamp_ns, estimate, frames))
+
+            sinks.append(base_pose)
+        if config.ros2.enabled:
+            if not config.frames.enabled:
+                log.warning("ros2 without [frames]: map is the target's frame and base_link is the camera")
+
+            def ros2(seq: int, stamp_ns: int, estimate) -> None:
+                if self._ros2 is not None:
+                    self._ros2.publish(seq, stamp_ns, estimate)
+
+            sinks.append(ros2)
+        return tuple(sinks)
+
     def _open_session(self):
         """The Zenoh session; in client mode, wait for the router with back-off (at boot it
         may not be up yet: exiting would be exit 2, which systemd does not restart)."""
         delay = self.config.daemon.reconnect_initial_s
         while True:
             try:
-                return open_session(self.config.zenoh, purpose="daemon")
+                return open_session(self.config.zenoh, purpose="daemon", timestamping=self.config.ros2.enabled)
             except ZenohUnreachable as exc:
                 log.warning("zenoh router unreachable, retrying", error=str(exc), retry_in_s=round(delay, 2))
                 self.notifier.status("waiting for the Zenoh router")
@@ -133,6 +158,8 @@ class Daemon:
             self.capture.join(JOIN_TIMEOUT_S)
         if status_thread.ident is not None:
             status_thread.join(JOIN_TIMEOUT_S)
+        if self._ros2 is not None:
+            self._ros2.close()
         if self._publisher is not None:
             self._publish_status()  # the last word: the camera's final state
             self._publisher.close()
@@ -201,6 +228,8 @@ class Daemon:
         self._loop.swap_processor(processor, prepared.calibration.size)
         self.processor, self.prepared = processor, prepared
         self._publisher.calibration_yaml = prepared.calibration_yaml
+        if self._ros2 is not None:
+            self._ros2.publish_camera_info(prepared.calibration)
         self._reloads["ok"] += 1
         self._reloads["last"] = {"ok": True, "stamp_ns": time.time_ns(),
                                  "detail": f"calibration {config.calibration}, target {config.target}"}

@@ -102,8 +102,10 @@ def settings_from_arguments(base: ZenohConfig, args: argparse.Namespace) -> Zeno
         raise ConfigError(f"command line: {str(exc).splitlines()[-1].strip()}") from None
 
 
-def build_zenoh_config(settings: ZenohConfig) -> zenoh.Config:
-    """The ``zenoh.Config`` for these settings (file first, explicit settings on top)."""
+def build_zenoh_config(settings: ZenohConfig, timestamping: bool = False) -> zenoh.Config:
+    """The ``zenoh.Config`` for these settings (file first, explicit settings on top);
+    ``timestamping`` stamps every sample (the ROS 2 side's cached CameraInfo needs it, as
+    rmw_zenoh's default session config has it)."""
     import zenoh
 
     for endpoint in (*settings.listen, *settings.connect):
@@ -129,6 +131,8 @@ def build_zenoh_config(settings: ZenohConfig) -> zenoh.Config:
             conf.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
         if settings.connect:
             conf.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
+        if timestamping:
+            conf.insert_json5("timestamping/enabled", "true")
     except zenoh.ZError as exc:
         raise ConfigError(f"zenoh settings: {zenoh_error_text(exc)}") from None
     return conf
@@ -154,11 +158,11 @@ def effective_settings(conf: zenoh.Config) -> dict[str, Any]:
     return out
 
 
-def open_session(settings: ZenohConfig, purpose: str = "daemon") -> zenoh.Session:
+def open_session(settings: ZenohConfig, purpose: str = "daemon", timestamping: bool = False) -> zenoh.Session:
     """Open the session; a Zenoh failure (port in use, bad file, bad TLS) is a ConfigError."""
     import zenoh
 
-    conf = build_zenoh_config(settings)
+    conf = build_zenoh_config(settings, timestamping)
     log.info("zenoh settings", purpose=purpose, **{k.replace("/", "."): v for k, v in effective_settings(conf).items()})
     try:
         session = zenoh.open(conf)

@@ -2,9 +2,40 @@
 
 from __future__ import annotations
 
+import signal
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+
+# A Zenoh router in a process of its own, listening on the endpoint given as its argument.
+ROUTER = """
+import json, sys, zenoh
+conf = zenoh.Config()
+conf.insert_json5("mode", '"router"')
+conf.insert_json5("scouting/multicast/enabled", "false")
+conf.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
+session = zenoh.open(conf)
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def helper_process(script: str, endpoint: str) -> subprocess.Popen:
+    """``script`` in a Python process of its own with ``endpoint`` as its argument; returns
+    once it printed "ready"; it runs until its stdin closes (``end_process``)."""
+    process = subprocess.Popen([sys.executable, "-c", script, endpoint], stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "ready"
+    return process
+
+
+def end_process(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGCONT)
+        process.kill()
+    process.wait(10)
 
 
 def free_port() -> int:

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import os
 import socket
+import struct
 import threading
 import time
 from pathlib import Path
@@ -15,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from helpers import free_port, wait_until
+from helpers import ROUTER, end_process, free_port, helper_process, wait_until
+from ros2_msgs import decode
 
 from calib.camera_info import paper_camera, write_camera_info
 from daemon.config import Config
@@ -97,15 +99,17 @@ class Script:
         return ScriptedCamera(self.image, step, self.period_s, self.log)
 
 
-def make_prepared(tmp_path, port: int, frames: dict | None = None, **daemon):
+def make_prepared(tmp_path, port: int, frames: dict | None = None, ros2: dict | None = None,
+                  connect: tuple[str, ...] = (), **daemon):
     write_camera_info(tmp_path / "camera.yaml", paper_camera())
     (tmp_path / "target.yaml").write_text(default_cube_yaml())
     config = Config.model_validate({
         **({"frames": frames} if frames is not None else {}),
+        **({"ros2": ros2} if ros2 is not None else {}),
         "name": "looptest",
         "camera": {"source": "synthetic:static?seconds=1"},  # (preflight builds it; the Script stands in)
         "positioning": {"calibration": tmp_path / "camera.yaml", "target": tmp_path / "target.yaml"},
-        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"]},
+        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"], "connect": list(connect)},
         "daemon": {"reconnect_initial_s": 0.1, "reconnect_max_s": 0.4, "status_period_s": 0.25, **daemon},
     })
     return prepare(config)
@@ -286,3 +290,82 @@ def test_with_frames_the_robots_base_in_the_map_goes_out_beside_the_camera_pose(
         np.testing.assert_allclose(base["position"], moved.translation, atol=1e-9)
         np.testing.assert_allclose(np.array(base["covariance"]).reshape(6, 6), covariance, rtol=1e-6, atol=1e-15)
     assert set(cameras) & {b["seq"] for b in listener.base_poses}
+
+
+def test_a_ros2_subscriber_written_from_rmw_zenohs_design_gets_the_poses_through_a_router(tmp_path, cube_image,
+                                                                                           listeners):
+    """What a node on rmw_zenoh_cpp does, from its docs/design.md only: ask the router's
+    graph for publishers (``@ros2_lv/<domain>/**``), take topic, type and hash from the
+    token, subscribe to ``<domain>/<topic>/<type>/<hash>``, and read CDR with the
+    attachment; the latched CameraInfo comes as a TRANSIENT_LOCAL subscription would have
+    it (an advanced subscriber asking the publishers' caches, joining late)."""
+    import zenoh
+    import zenoh.ext
+
+    router_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = helper_process(ROUTER, router_endpoint)
+    port = free_port()
+    mount = {"xyz": [0.3, 0.0, 1.1], "rpy_deg": [-90, 0, -90]}
+    prepared = make_prepared(tmp_path, port, frames={"base_from_camera": mount},
+                             ros2={"enabled": True, "domain_id": 7, "namespace": "/robot7"},
+                             connect=(router_endpoint,))
+    _, stop, thread, _ = start_daemon(prepared, Script(cube_image, [10_000]))
+    listener = listeners(port)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([router_endpoint]))
+    node = zenoh.open(conf)
+    try:
+        def publishers():
+            tokens = [str(r.ok.key_expr) for r in node.liveliness().get("@ros2_lv/7/**", timeout=2.0) if r.ok]
+            # @ros2_lv/<domain>/<session>/<node>/<entity>/<kind>/<enclave>/<ns>/<node name>/<topic>/<type>/<hash>/<qos>
+            return {part[9].replace("%", "/"): part for part in (t.split("/") for t in tokens) if part[5] == "MP"}, tokens
+
+        graph, seen = {}, set()
+
+        def graph_complete():  # the node and its three publishers (tokens arrive in any order)
+            found, tokens = publishers()
+            graph.update(found)
+            seen.update(tokens)
+            return len(graph) == 3 and any(t.endswith("/NN/%/%robot7/cubeloc") for t in seen)
+
+        assert wait_until(graph_complete, 20), publishers()[1]
+        found = graph
+        pose_token = found["/robot7/cubeloc/pose"]
+        assert pose_token[10] == "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_" and pose_token[12] == "::,10:,:,:,,"
+        key = lambda part: f"7/{part[9].replace('%', '/').lstrip('/')}/{part[10]}/{part[11]}"  # noqa: E731
+        received = []
+        node.declare_subscriber(key(pose_token), lambda s: received.append(
+            (decode(s.payload.to_bytes(), "pose"), s.attachment.to_bytes())))
+        latched = []
+        node_ext = zenoh.ext.declare_advanced_subscriber(
+            node, key(found["/robot7/cubeloc/camera_info"]),
+            lambda s: latched.append(decode(s.payload.to_bytes(), "camera_info")),
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1))
+        assert wait_until(lambda: len(received) >= 5 and latched, 20), (len(received), len(latched))
+    finally:
+        stop.set()
+        thread.join(5.0)
+        node_ext.undeclare() if "node_ext" in locals() else None
+        node.close()
+        end_process(router)
+    info = latched[0]
+    assert (info.width, info.height, info.header.frame_id) == (1280, 1024, "camera_optical")
+    frames = prepared.config.frames.robot_frames()
+    truth = frames.T_map_target @ look_at(CAMERA_POSITION, np.zeros(3)) @ frames.T_base_camera.inverse()
+    by_stamp = {p["stamp_ns"]: p for p in listener.poses}
+    sequences = []
+    for message, attachment in received:
+        sequence, _, length = struct.unpack("<qqB", attachment[:17])
+        sequences.append(sequence)
+        assert length == 16 and len(attachment) == 33
+        assert message.header.frame_id == "map"
+        position = message.pose.pose.position
+        assert np.linalg.norm(np.array([position.x, position.y, position.z]) - truth.translation) < 0.01
+        stamp = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+        camera = by_stamp.get(stamp)  # the same frame's camera pose, on cubeloc's own key
+        if camera is not None:
+            moved, _ = frames.base_in_map(Transform.from_quaternion(camera["position"], camera["orientation"]), None)
+            np.testing.assert_allclose([position.x, position.y, position.z], moved.translation, atol=1e-9)
+    assert sequences == sorted(sequences) and len(set(sequences)) == len(sequences)

@@ -219,6 +219,9 @@ def _config(tmp_path, extra: str = "", calibration: str | None = None) -> str:
         ("missing_zenoh_file", "zenoh config file"),
         ("bad_source_option", "unknown option(s) bogus"),
         ("bad_mount", "frames.base_from_camera.quaternion = [0, 0, 0.5, 0.5]: Value error, not a unit quaternion"),
+        ("bad_ros2_namespace", "ros2.namespace = 'robot7': Value error, a namespace is absolute"),
+        ("bad_ros2_topic", "ros2.topics.pose = 'cubeloc//pose': Value error, not a ROS 2 topic name"),
+        ("bad_ros2_distro", "ros2.distro = 'humble'"),
     ],
 )
 def test_bad_config_exits_2_with_one_line(tmp_path, cli, case, expect):
@@ -235,6 +238,9 @@ def test_bad_config_exits_2_with_one_line(tmp_path, cli, case, expect):
         "missing_zenoh_file": _config(tmp_path, f"config_file = \"{tmp_path / 'zenoh.json5'}\"\n"),
         "bad_source_option": good.replace("synthetic:paper", "synthetic:paper?bogus=1"),
         "bad_mount": good + "[frames.base_from_camera]\nxyz = [0.3, 0, 1.1]\nquaternion = [0, 0, 0.5, 0.5]\n",
+        "bad_ros2_namespace": good + "[ros2]\nenabled = true\nnamespace = \"robot7\"\n",
+        "bad_ros2_topic": good + "[ros2.topics]\npose = \"cubeloc//pose\"\n",
+        "bad_ros2_distro": good + "[ros2]\ndistro = \"humble\"\n",
     }[case]
     path = tmp_path / "case.toml"
     path.write_text(config_text)

@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
-import sys
 import threading
 import time
 
 import pytest
 import structlog
-from helpers import wait_until
+from helpers import ROUTER, end_process, helper_process, wait_until
 
 from bench.soak import free_port, make_prepared
 from daemon.sdnotify import SystemdNotifier
@@ -29,17 +27,7 @@ from positioning.target_pose import PoseOptions
 
 FPS = 10.0
 
-# A Zenoh router (or a subscriber that reads slowly) in a process of its own.
-ROUTER = """
-import json, sys, zenoh
-conf = zenoh.Config()
-conf.insert_json5("mode", '"router"')
-conf.insert_json5("scouting/multicast/enabled", "false")
-conf.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
-session = zenoh.open(conf)
-print("ready", flush=True)
-sys.stdin.read()
-"""
+# A subscriber that reads slowly, in a process of its own (helpers.helper_process).
 SLOW_SUBSCRIBER = """
 import json, sys, time, zenoh
 conf = zenoh.Config()
@@ -54,20 +42,6 @@ session.declare_subscriber("cubeloc/**", slow)
 print("ready", flush=True)
 sys.stdin.read()
 """
-
-
-def helper_process(script: str, endpoint: str) -> subprocess.Popen:
-    process = subprocess.Popen([sys.executable, "-c", script, endpoint], stdin=subprocess.PIPE,
-                               stdout=subprocess.PIPE, text=True)
-    assert process.stdout.readline().strip() == "ready"
-    return process
-
-
-def end_process(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGCONT)
-        process.kill()
-    process.wait(10)
 
 
 def session_to(endpoint: str, mode: str = "peer"):

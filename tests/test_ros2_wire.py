@@ -1,0 +1,168 @@
+"""The ROS 2 side checked against what it must match, with nothing of daemon/ros2.py's own
+machinery on the checking side: the key and token formats against rmw_zenoh's design
+document (its examples verbatim), the type hashes against a second hasher
+(ros2-pyterfaces), every payload decoded by a second CDR implementation (pycdr2, with the
+message layouts written here from the .msg definitions), the attachment byte by byte as
+the design document lays it out."""
+
+from __future__ import annotations
+
+import struct
+import time
+
+import numpy as np
+import pytest
+from ros2_msgs import decode
+
+from calib.camera_info import paper_camera
+from daemon.config import Ros2Config
+from daemon.ros2 import (
+    CAMERA_INFO_TYPE,
+    ODOMETRY_TYPE,
+    POSE_TYPE,
+    TF_TYPE,
+    UNKNOWN_TWIST_VARIANCE,
+    Ros2Publisher,
+    node_token,
+    ros_topic,
+    typestore,
+)
+from positioning.estimator import PoseEstimate, PoseState
+from positioning.frames import RobotFrames
+from positioning.geometry import Transform, look_at
+
+# rmw_zenoh docs/design.md (commit 99a6a2b), "Topic and Service name mapping" and "Graph Cache"
+DOC_CHATTER_KEY = "0/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+DOC_NAMESPACED_KEY = "0/robot1/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+DOC_LISTENER_NODE = "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+DOC_TALKER_PUBLISHER = ("@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+                        "std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/"
+                        "::,7:,:,:,,")
+
+
+def test_keys_and_tokens_are_the_design_documents_examples():
+    string_hash = typestore("jazzy").hash_rihs01("std_msgs/msg/String")  # computed, and it is the doc's
+    chatter = ros_topic("std_msgs/msg/String", "/chatter", string_hash, 0, "z", 0, 1, "", "talker", 10)
+    assert chatter.key == DOC_CHATTER_KEY
+    namespaced = ros_topic("std_msgs/msg/String", "/robot1/chatter", string_hash, 0, "z", 0, 1, "/robot1", "talker", 10)
+    assert namespaced.key == DOC_NAMESPACED_KEY
+    talker = ros_topic("std_msgs/msg/String", "/chatter", string_hash, 2, "8b20917502ee955ac4476e0266340d5c", 0, 10,
+                       "", "talker", 7)
+    assert talker.token == DOC_TALKER_PUBLISHER
+    assert node_token(2, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "", "listener") == DOC_LISTENER_NODE
+    # a namespace is mangled, a latched topic says TRANSIENT_LOCAL (1) with depth 1
+    latched = ros_topic(CAMERA_INFO_TYPE, "/robot7/cubeloc/camera_info", "H", 0, "z", 0, 3, "/robot7", "cubeloc", 1, True)
+    assert latched.token.endswith("/MP/%/%robot7/cubeloc/%robot7%cubeloc%camera_info/"
+                                  "sensor_msgs::msg::dds_::CameraInfo_/H/:1:,1:,:,:,,")
+
+
+def _pyterfaces_schemas():
+    from ros2_pyterfaces.core.geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+    from ros2_pyterfaces.core.nav_msgs.msg import Odometry
+    from ros2_pyterfaces.core.sensor_msgs.msg import CameraInfo
+    from ros2_pyterfaces.core.types import Sequence
+
+    tf = {"__typename": TF_TYPE, "transforms": Sequence(TransformStamped)}  # tf2_msgs is not in it
+    return {POSE_TYPE: PoseWithCovarianceStamped, ODOMETRY_TYPE: Odometry, CAMERA_INFO_TYPE: CameraInfo, TF_TYPE: tf}
+
+
+@pytest.mark.parametrize("distro", ["jazzy", "kilted", "rolling"])
+def test_type_hashes_agree_with_a_second_hasher(distro):
+    from ros2_pyterfaces.core.description import hash_rihs01
+
+    store = typestore(distro)
+    for typename, schema in _pyterfaces_schemas().items():
+        assert store.hash_rihs01(typename) == hash_rihs01(schema), typename
+
+
+class FakeSession:
+    """Records what the publisher would put, for decoding without a network."""
+
+    class _Info:
+        @staticmethod
+        def zid():
+            return "0123456789abcdef0123456789abcdef"
+
+    class _Entity:
+        def __init__(self, log, key):
+            self.log, self.key = log, key
+
+        def put(self, payload, attachment=None):
+            self.log.append((self.key, bytes(payload), bytes(attachment)))
+
+        def undeclare(self):
+            pass
+
+    def __init__(self):
+        self.info, self.sent, self.tokens = self._Info(), [], []
+
+    def declare_publisher(self, key, **_):
+        return self._Entity(self.sent, key)
+
+    def liveliness(self):
+        session = self
+
+        class _Liveliness:
+            @staticmethod
+            def declare_token(key):
+                session.tokens.append(key)
+                return FakeSession._Entity([], key)
+
+        return _Liveliness()
+
+
+def test_every_payload_decodes_with_a_second_cdr_implementation_and_says_what_was_measured(monkeypatch):
+    import zenoh.ext
+
+    session = FakeSession()
+    monkeypatch.setattr(zenoh.ext, "declare_advanced_publisher",
+                        lambda s, key, **_: FakeSession._Entity(session.sent, key))
+    mount = Transform(np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float), [0.3, 0.0, 1.1])
+    frames = RobotFrames(mount, Transform(np.eye(3), [5.0, 2.0, 0.0]), "map", "robot7/base_link", "robot7/camera")
+    camera = paper_camera()
+    config = Ros2Config(enabled=True, namespace="/robot7", publish_tf=True)
+    publisher = Ros2Publisher(session, config, frames, camera)
+    T = look_at(np.array([1.5, -1.2, 0.8]), np.zeros(3))
+    covariance = np.diag([1e-6, 2e-6, 3e-6, 1e-5, 2e-5, 3e-5])
+    estimate = PoseEstimate(T, PoseState.TARGET, 3, (0, 1, 4), 0.1, covariance)
+    stamp_ns = 1_790_000_000_123_456_789
+    before = time.time_ns()
+    publisher.publish(7, stamp_ns, estimate)
+    publisher.publish(8, stamp_ns + 100_000_000, estimate)
+    expected, expected_cov = frames.base_in_map(T, covariance)
+    by_key = {topic.key: role for role, topic in publisher.topics.items()}
+    seen = {}
+    for key, payload, attachment in session.sent:
+        role = by_key[key]
+        message = decode(payload, role)
+        # the attachment, as design.md lays it out: int64 LE sequence, int64 LE time, 16, GID
+        sequence, source_ns, gid_length, gid = struct.unpack("<qqB16s", attachment)
+        assert len(attachment) == 33 and gid_length == 16 and gid == publisher.topics[role].gid
+        assert before - 10**9 <= source_ns <= time.time_ns() + 10**9 or role == "camera_info"
+        seen.setdefault(role, []).append((sequence, message))
+    assert sorted(seen) == ["camera_info", "odometry", "pose", "tf"]
+    assert [s for s, _ in seen["pose"]] == [1, 2] and [s for s, _ in seen["camera_info"]] == [1]
+    pose = seen["pose"][0][1]
+    assert (pose.header.frame_id, pose.header.stamp.sec, pose.header.stamp.nanosec) == ("map", 1_790_000_000, 123_456_789)
+    position = pose.pose.pose.position
+    np.testing.assert_allclose([position.x, position.y, position.z], expected.translation, atol=1e-12)
+    q = pose.pose.pose.orientation
+    assert abs(abs(np.dot([q.x, q.y, q.z, q.w], expected.quaternion())) - 1) < 1e-12
+    np.testing.assert_allclose(np.reshape(pose.pose.covariance, (6, 6)), expected_cov, rtol=1e-12, atol=1e-18)
+    odometry = seen["odometry"][0][1]
+    assert odometry.child_frame_id == "robot7/base_link" and odometry.pose == pose.pose
+    assert odometry.twist.covariance[0] == UNKNOWN_TWIST_VARIANCE and odometry.twist.twist.linear.x == 0.0
+    (transform,) = seen["tf"][0][1].transforms
+    assert (transform.header.frame_id, transform.child_frame_id) == ("map", "robot7/base_link")
+    assert transform.transform.translation.x == position.x and transform.transform.rotation == q
+    info = seen["camera_info"][0][1]
+    assert (info.width, info.height, info.header.frame_id) == (1280, 1024, "robot7/camera")
+    np.testing.assert_allclose(np.reshape(info.k, (3, 3)), camera.camera_matrix)
+    np.testing.assert_allclose(info.d, np.ravel(camera.distortion))
+    assert info.distortion_model == "plumb_bob" and np.reshape(info.p, (3, 4))[0, 3] == 0.0
+    # the graph: one node token, one token per publisher, each with its topic's type and hash
+    assert session.tokens[0] == "@ros2_lv/0/0123456789abcdef0123456789abcdef/0/0/NN/%/%robot7/cubeloc"
+    assert set(session.tokens[1:]) == {topic.token for topic in publisher.topics.values()}
+    assert publisher.topics["pose"].key.startswith("0/robot7/cubeloc/pose/geometry_msgs::msg::dds_::"
+                                                   "PoseWithCovarianceStamped_/RIHS01_")
+    assert publisher.topics["tf"].key.startswith("0/robot7/tf/tf2_msgs::msg::dds_::TFMessage_/RIHS01_")
