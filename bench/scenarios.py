@@ -67,13 +67,15 @@ def _render(root: Path, name: str) -> Path:
     return out
 
 
-def _track(tree: Path, sequence: Path, out: Path, poses: bool) -> dict:
-    """One ``cubeloc track`` in a child process from ``tree``: its summary figures."""
+def _track(tree: Path, sequence: Path, out: Path, poses: bool, extra: tuple[str, ...] = ()) -> dict:
+    """One ``cubeloc track`` (with ``extra`` arguments) in a child process from ``tree``:
+    its summary figures."""
     args = [sys.executable, "-c", _WRAPPER, "track", "--target", str(sequence / "target.yaml"),
-            "--calib", str(sequence / "camera.yaml"), "--sequence", str(sequence), "--out", str(out)]
+            "--calib", str(sequence / "camera.yaml"), "--sequence", str(sequence), "--out", str(out), *extra]
     if poses:
         args += ["--poses", str(out.with_suffix(".jsonl"))]
-    env = {**os.environ, "PYTHONPATH": str(tree)}
+    # the bench's own CUBELOC_BENCH_* variables are not config keys for the child's --config
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("CUBELOC_BENCH_")}, "PYTHONPATH": str(tree)}
     done = subprocess.run(args, cwd=tree, env=env, capture_output=True, text=True, timeout=3600)
     if done.returncode != 0:
         raise RuntimeError(f"cubeloc track in {tree} failed: {done.stderr.strip()[-400:]}")

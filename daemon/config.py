@@ -259,6 +259,36 @@ class Ros2Config(Section):
         return name if name.startswith("/") else f"{self.namespace}/{name}"
 
 
+class OdometryConfig(Section):
+    """Wheel odometry in (positioning/tracking/odometry.py): the tracker's bridge where the
+    camera has no pose (and with ``as_prior`` its motion prior too); never over the target."""
+
+    enabled: bool = False
+    # ros2: nav_msgs/msg/Odometry in CDR on rmw_zenoh's key for [ros2] domain_id + topic;
+    # json: cubeloc.odometry/1 documents on cubeloc/<name>/odometry (README)
+    source: Literal["ros2", "json"] = "ros2"
+    topic: str = Field("odom", description="the ROS 2 topic, relative to [ros2] namespace unless absolute")
+    # bridge only (default): a pose from the last one while the camera has none; as_prior: also
+    # the tracker's motion prior and held position (measured worse on blank_wall: bench odometry)
+    as_prior: bool = False
+    scale_sigma: float = Field(0.02, gt=0, le=1, description="position error per metre driven")
+    turn_sigma: float = Field(0.02, gt=0, le=1, description="heading error per radian turned")
+    heading_drift_deg_s: float = Field(0.2, ge=0, le=90, description="heading error per second")
+    stale_s: float = Field(0.5, gt=0, le=60, description="a sample older than this when it arrives is dropped")
+    max_extrapolation_s: float = Field(0.1, ge=0, le=5, description="how far past the newest sample to predict")
+
+    @field_validator("topic")
+    @classmethod
+    def _topic(cls, value: str) -> str:
+        return _ros_name(value, "topic name")
+
+    def buffer(self):
+        from positioning.tracking.odometry import OdometryBuffer, OdometryModel
+
+        model = OdometryModel(self.scale_sigma, self.turn_sigma, math.radians(self.heading_drift_deg_s))
+        return OdometryBuffer(model, stale_s=self.stale_s, max_extrapolation_s=self.max_extrapolation_s)
+
+
 class LoggingConfig(Section):
     level: Literal["debug", "info", "warning", "error"] = "info"
     format: Literal["auto", "json", "console"] = "auto"
@@ -272,6 +302,7 @@ class Config(Section):
     daemon: DaemonConfig = DaemonConfig()
     frames: FramesConfig = FramesConfig()
     ros2: Ros2Config = Ros2Config()
+    odometry: OdometryConfig = OdometryConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @field_validator("name")

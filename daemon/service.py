@@ -25,6 +25,7 @@ from daemon.capture import CaptureThread
 from daemon.frame_queue import LatestFrameSlot
 from daemon.loop_stats import LoopStats
 from daemon.messages import StatusReport, base_pose_message, status_message
+from daemon.odometry_in import OdometryInput
 from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
 from daemon.preflight import Prepared, make_processor, read_positioning_files
 from daemon.publisher import ZenohPublisher
@@ -33,6 +34,7 @@ from daemon.sdnotify import SystemdNotifier
 from daemon.zenoh_session import ZenohUnreachable, open_session
 from drivers.base import Camera, CameraSettings
 from positioning.estimator import FrameProcessor
+from positioning.tracking.odometry import OdometryPrior
 
 log = structlog.get_logger()
 
@@ -58,7 +60,10 @@ class Daemon:
         self.reload = reload or threading.Event()
         self._reloads = {"ok": 0, "failed": 0, "last": None}  # on status: extra.reload
         self.notifier = notifier or SystemdNotifier()
-        self.processor = processor if processor is not None else make_processor(prepared)
+        # wheel odometry in ([odometry]): filled from Zenoh, read by the tracker
+        self.odometry = self.config.odometry.buffer() if self.config.odometry.enabled else None
+        self._odometry_in: OdometryInput | None = None
+        self.processor = self._with_odometry(processor if processor is not None else make_processor(prepared))
         self.stats = LoopStats()
         self.slot = LatestFrameSlot()
         camera = self.config.camera
@@ -99,6 +104,8 @@ class Daemon:
             if config.ros2.enabled:
                 self._ros2 = Ros2Publisher(session, config.ros2, config.frames.robot_frames(),
                                            self.prepared.calibration)
+            if self.odometry is not None:
+                self._odometry_in = OdometryInput(session, config, self.odometry)
             self._loop = loop
             log.info("daemon started", name=config.name, source=config.camera.source, version=__version__,
                      calibration=str(config.positioning.calibration), target=str(config.positioning.target))
@@ -111,6 +118,17 @@ class Daemon:
         if self.capture.failure is not None:
             raise self.capture.failure
         return 0
+
+    def _with_odometry(self, processor: FrameProcessor) -> FrameProcessor:
+        """The processor, its tracker given the odometry (the target-only mode has no use for it)."""
+        tracker = getattr(processor, "tracker", None)
+        if self.odometry is not None and tracker is not None:
+            frames = self.config.frames.robot_frames()
+            tracker.odometry = OdometryPrior(self.odometry, frames.T_base_camera, frames.up_in_target,
+                                             as_prior=self.config.odometry.as_prior)
+        elif self.odometry is not None:
+            log.warning("odometry is only used by the tracker (positioning.mode = \"tracker\")")
+        return processor
 
     def _pose_sinks(self) -> tuple:
         """What each published pose also goes to: the base in the map on ``base_pose``
@@ -158,6 +176,8 @@ class Daemon:
             self.capture.join(JOIN_TIMEOUT_S)
         if status_thread.ident is not None:
             status_thread.join(JOIN_TIMEOUT_S)
+        if self._odometry_in is not None:
+            self._odometry_in.close()
         if self._ros2 is not None:
             self._ros2.close()
         if self._publisher is not None:
@@ -207,7 +227,8 @@ class Daemon:
             extra={"processor_errors": stats.processor_errors, "faults": self.capture.faults(),
                    # time without a pose since the first one, and now; frames held on rays
                    "lost_s": round(stats.lost_s, 2), "lost_now_s": round(stats.lost_now_s(), 2),
-                   "held_frames": stats.held_frames, "reload": dict(self._reloads)},
+                   "held_frames": stats.held_frames, "reload": dict(self._reloads),
+                   **({"odometry": self.odometry.report()} if self.odometry is not None else {})},
         )
 
     # -- reload (SIGHUP) -------------------------------------------------------------------
@@ -218,7 +239,7 @@ class Daemon:
         config = self.config.positioning
         try:
             prepared = read_positioning_files(self.config)
-            processor = make_processor(prepared)
+            processor = self._with_odometry(make_processor(prepared))
         except CubelocError as exc:
             self._reloads["failed"] += 1
             self._reloads["last"] = {"ok": False, "stamp_ns": time.time_ns(), "detail": str(exc)}

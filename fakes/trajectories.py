@@ -171,5 +171,11 @@ def make_trajectory(name: str, seconds: float | None = None, fps: float | None =
         raise TrajectoryError(f"--fps must be in (0, 1000], got {fps:g}")
     count = max(1, int(np.floor(seconds * fps + 1e-9)))
     frame_ns = np.rint(np.arange(count) * 1e9 / fps).astype(np.int64)
-    poses = _MAKERS[name](frame_ns / 1e9, seconds)
+    poses = trajectory_at(name, frame_ns / 1e9, seconds)
     return [StampedPose(EPOCH_NS + int(ns), pose) for ns, pose in zip(frame_ns, poses, strict=True)]
+
+
+def trajectory_at(name: str, times_s: np.ndarray, seconds: float) -> list[Transform]:
+    """T_world_camera of the named trajectory (of ``seconds``) at any times (seconds from
+    its start, stamp ``EPOCH_NS``): a wheel odometry's own clock (fakes/odometry.py)."""
+    return _MAKERS[name](np.asarray(times_s, np.float64), seconds)

@@ -57,6 +57,11 @@ class RobotFrames:
     base_frame: str = "base_link"
     camera_frame: str = "camera_optical"
 
+    @property
+    def up_in_target(self) -> np.ndarray:
+        """The map's vertical (REP 105: z up) in the target's frame: where the floor's normal is."""
+        return self.T_map_target.rotation.T @ np.array([0.0, 0.0, 1.0])
+
     def base_in_map(self, T_world_camera: Transform, covariance: np.ndarray | None
                     ) -> tuple[Transform, np.ndarray | None]:
         """``T_map_base`` and its covariance (None when the camera pose has none)."""

@@ -75,3 +75,14 @@ def _loopback_only(request):
             pytest.fail(f"this test touches Aravis, whose discovery broadcasts on {', '.join(others)}: run it "
                         "in a loopback-only network namespace (make test, or scripts/loopback-only "
                         ".venv/bin/python -m pytest ...)", pytrace=False)
+
+
+@pytest.fixture
+def listeners():
+    """Listener sessions, always closed (an open Zenoh session keeps the interpreter alive)."""
+    from helpers import Listener
+
+    made = []
+    yield lambda port: made.append(Listener(port)) or made[-1]
+    for listener in made:
+        listener.session.close()

@@ -9,6 +9,7 @@ Hypothesis then mutates valid documents into junk and feeds them to the loaders.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -372,3 +373,25 @@ def test_a_truncated_frame_in_a_replay_is_dropped_and_counted_or_with_strict_sto
     strict = subprocess.run([*argv, "--strict"], capture_output=True, text=True, timeout=120)
     assert strict.returncode == 2 and strict.stderr.count("\n") == 1 and str(third) in strict.stderr, strict.stderr
     assert "WARN:" not in strict.stderr
+
+
+def test_track_odometry_replay_drops_and_counts_bad_samples_and_refuses_a_broken_file(tmp_path, capsys, good):
+    """``cubeloc track --odometry``: a NaN, a non-unit quaternion and an out-of-order sample
+    are dropped and counted in the summary; a line that is not a document is exit 2, one
+    line naming the file and the line."""
+    rows = [{"stamp_ns": 900, "position": [0, 0, 0], "orientation": [0, 0, 0, 1]},
+            {"stamp_ns": 950, "position": [float("nan"), 0, 0], "orientation": [0, 0, 0, 1]},
+            {"stamp_ns": 960, "position": [0, 0, 0], "orientation": [0, 0, 0.5, 0.5]},
+            {"stamp_ns": 800, "position": [0, 0, 0], "orientation": [0, 0, 0, 1]},
+            {"stamp_ns": 990, "position": [0.01, 0, 0], "orientation": [0, 0, 0, 1]}]
+    odometry = tmp_path / "odom.jsonl"
+    odometry.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    argv = ["track", "--target", str(good / "target.yaml"), "--calib", str(good / "camera.yaml"),
+            "--sequence", str(good / "seq"), "--out", str(tmp_path / "out.tum"), "--odometry", str(odometry)]
+    code, out, err = run_main(capsys, *argv)
+    assert code == 0, err
+    assert "odometry samples 2" in out and "odometry dropped (nan) 1" in out, out
+    assert "odometry dropped (not_unit) 1" in out and "odometry dropped (out_of_order) 1" in out, out
+    odometry.write_text(json.dumps(rows[0]) + "\n{\"stamp_ns\": 1000\n")
+    code, out, err = run_main(capsys, *argv)
+    assert code == 2 and err.count("\n") == 1 and f"{odometry}:2" in err and "Traceback" not in err, err

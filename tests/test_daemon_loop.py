@@ -115,42 +115,6 @@ def make_prepared(tmp_path, port: int, frames: dict | None = None, ros2: dict | 
     return prepare(config)
 
 
-class Listener:
-    """A second Zenoh session, as a subscriber on the robot would have."""
-
-    def __init__(self, port: int) -> None:
-        import zenoh
-
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-        self.session = zenoh.open(conf)
-        self.poses, self.status, self.base_poses = [], [], []
-        self.session.declare_subscriber("cubeloc/*/pose", lambda s: self.poses.append(json.loads(s.payload.to_bytes())))
-        self.session.declare_subscriber("cubeloc/*/base_pose",
-                                        lambda s: self.base_poses.append(json.loads(s.payload.to_bytes())))
-        self.session.declare_subscriber("cubeloc/*/status", lambda s: self.status.append(json.loads(s.payload.to_bytes())))
-
-    def wait_for(self, predicate, timeout_s=20.0):
-        return wait_until(predicate, timeout_s)
-
-    def query(self, key):
-        return [r.ok.payload.to_bytes() for r in self.session.get(key, timeout=5.0) if r.ok is not None]
-
-    def alive(self):
-        return [str(r.ok.key_expr) for r in self.session.liveliness().get("cubeloc/*/alive", timeout=2.0) if r.ok is not None]
-
-
-@pytest.fixture
-def listeners():
-    """Listener sessions, always closed (an open Zenoh session keeps the interpreter alive)."""
-    made = []
-    yield lambda port: made.append(Listener(port)) or made[-1]
-    for listener in made:
-        listener.session.close()
-
-
 def start_daemon(prepared, script, notifier=None):
     stop = threading.Event()
     daemon = Daemon(prepared, stop, camera_factory=script, notifier=notifier or SystemdNotifier({}))

@@ -42,10 +42,15 @@ def replay(tmp_path_factory, name: str, seconds: float | None = None, seed: int 
             results.append(processor.process(read_mono_png(entry.path), entry.stamp_ns, i))
     finally:
         processor.close()
+    return score_results(results, truth), results, truth
+
+
+def score_results(results, truth):
+    """The score of a run's results (one per frame) against the ground truth."""
     entries = [None if r.estimate is None else (StampedPose(t.stamp_ns, r.estimate.T_world_camera),
                                                 r.estimate.covariance)
                for r, t in zip(results, truth, strict=True)]
-    return score_run(truth, entries), results, truth
+    return score_run(truth, entries)
 
 
 def tracking_score(results, truth):

@@ -39,6 +39,12 @@ def register(subparsers) -> None:
                              "by default it is dropped and counted, as a camera's bad frames are")
     parser.add_argument("--background-ba", action="store_true",
                         help="run bundle adjustment in a worker thread, as the daemon does")
+    parser.add_argument("--odometry", metavar="FILE.jsonl",
+                        help="wheel odometry to replay with the frames: cubeloc.odometry/1 documents, one per "
+                             "line in the order they arrived (each from its arrival_ns, else its stamp_ns)")
+    parser.add_argument("--config", metavar="FILE",
+                        help="a cubeloc.toml whose [frames] (the camera's mount) and [odometry] (its error "
+                             "model) go with --odometry")
     parser.set_defaults(func=run)
 
 
@@ -74,6 +80,7 @@ def run(args) -> int:
     options = replace(defaults, tracker=replace(
         defaults.tracker, bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
     processor = TrackingProcessor(target, calibration, options)
+    odometry = _odometry(args, processor) if args.odometry else None
     poses: list[StampedPose] = []
     payloads: list[str] = []
     states: Counter[str] = Counter()
@@ -93,6 +100,8 @@ def run(args) -> int:
                 states["dropped"] += 1
                 log.warning("track.frame_dropped", seq=seq, error=str(exc))
                 continue
+            if odometry is not None:
+                odometry.feed(entry.stamp_ns)
             result = processor.process(image, entry.stamp_ns, seq)
             if result.estimate is not None:
                 poses.append(StampedPose(entry.stamp_ns, result.estimate.T_world_camera))
@@ -110,6 +119,11 @@ def run(args) -> int:
     write_tum(out, poses)
     if args.poses:
         atomic_write_text(Path(args.poses), "".join(line + "\n" for line in payloads))
+    if odometry is not None:
+        stats = odometry.buffer.stats
+        states["odometry samples"] = stats.received - sum(stats.dropped.values())
+        for reason, count in stats.dropped.items():
+            states[f"odometry dropped ({reason})"] = count
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
     print(f"{len(entries)} frames in {elapsed:.1f} s ({len(entries) / max(elapsed, 1e-9):.1f} fps): {summary}")
     print(f"wrote {len(poses)} poses to {out}" + (f" and {args.poses}" if args.poses else ""))
@@ -124,3 +138,52 @@ def run(args) -> int:
         print(f"ATE (no alignment, {ate.count} poses): RMS {ate.rmse_m * 1000:.2f} mm, "
               f"median {ate.median_m * 1000:.2f} mm, max {ate.max_m * 1000:.2f} mm")
     return 0
+
+
+class _OdometryReplay:
+    """The samples of an odometry file, given to the buffer as they would have arrived."""
+
+    def __init__(self, path: Path, buffer) -> None:
+        import json
+
+        from cubeloc.errors import InputFileError
+
+        self.buffer = buffer
+        self.rows = []
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputFileError(f"{path}: cannot read ({exc})") from None
+        for number, line in enumerate(lines, start=1):
+            if not line.strip():
+                continue
+            try:
+                row = json.loads(line)
+                stamp, position, orientation = int(row["stamp_ns"]), row["position"], row["orientation"]
+                arrival = int(row.get("arrival_ns", stamp))
+            except (ValueError, KeyError, TypeError) as exc:
+                raise InputFileError(f"{path}:{number}: not a cubeloc.odometry/1 document ({exc})") from None
+            self.rows.append((arrival, stamp, position, orientation))
+        self._next = 0  # the file's order is the order they arrived in
+
+    def feed(self, now_ns: int) -> None:
+        while self._next < len(self.rows) and self.rows[self._next][0] <= now_ns:
+            arrival, stamp, position, orientation = self.rows[self._next]
+            self.buffer.add(stamp, position, orientation, now_ns=arrival)
+            self._next += 1
+
+
+def _odometry(args, processor) -> _OdometryReplay:
+    from daemon.config import Config, load_config
+    from positioning.tracking.odometry import OdometryPrior
+
+    config = load_config(args.config) if args.config else Config()
+    buffer = config.odometry.buffer()
+    replay = _OdometryReplay(Path(args.odometry), buffer)  # a bad file stops here, with one line
+    if not config.frames.enabled:
+        print("warning: no [frames.base_from_camera] (--config): the camera is taken for the robot's base",
+              file=sys.stderr)
+    frames = config.frames.robot_frames()
+    processor.tracker.odometry = OdometryPrior(buffer, frames.T_base_camera, frames.up_in_target,
+                                               as_prior=config.odometry.as_prior)
+    return replay

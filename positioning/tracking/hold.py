@@ -63,9 +63,10 @@ class RayHold:
         return {int(t): (pose.translation, d) for t, d in zip(ids, directions, strict=True)}
 
     def hold(self, stamp_ns: int, last: Transform, last_stamp: int, prediction: Transform, tracks: Tracks,
-             xn: np.ndarray, world_map: Map) -> Held | None:
+             xn: np.ndarray, world_map: Map, odometry: np.ndarray | None = None) -> Held | None:
         """The held pose of the frame at ``stamp_ns`` (``last`` is the last frame's pose,
-        ``prediction`` the motion model's), or None when rays and time do not allow it."""
+        ``prediction`` the motion model's, or the wheel odometry's when ``odometry``, its
+        covariance since the hold began, is given), or None when rays and time do not allow it."""
         o = self.options
         if self.since is None:
             self.since = last_stamp
@@ -83,10 +84,12 @@ class RayHold:
         centres = np.array([self.rays[int(t)][0] for t in tracks.ids[born]])
         directions = np.array([self.rays[int(t)][1] for t in tracks.ids[born]])
         rays = Rays(centres, directions, xn[born], 1.0 / depth)
-        # no measured translation: the motion model's dies away (it moved the prediction)
-        decay = 0.5 ** ((stamp_ns - last_stamp) / 1e9 / o.hold_velocity_half_life_s)
-        prior = (last.translation + decay * (prediction.translation - last.translation),
-                 o.hold_sigma_m + o.hold_sigma_m_per_s * held_s)
+        if odometry is not None:  # the wheels measured the translation: the odometry's, with its sigma
+            prior = (prediction.translation, float(np.sqrt(o.hold_sigma_m**2 + odometry[0, 0])))
+        else:  # no measured translation: the motion model's dies away (it moved the prediction)
+            decay = 0.5 ** ((stamp_ns - last_stamp) / 1e9 / o.hold_velocity_half_life_s)
+            prior = (last.translation + decay * (prediction.translation - last.translation),
+                     o.hold_sigma_m + o.hold_sigma_m_per_s * held_s)
         fit = fit_pose(prediction, points, xn[has], rays, fx=self.fx, sigma_px=o.track_sigma_px,
                        prior_position=prior)
         if fit is not None and 0 < fit.point_inliers.sum() < o.min_hold_points:
@@ -102,10 +105,11 @@ class RayHold:
         return fit.T_world_camera, fit.covariance
 
     def _coast(self, held_s: float, prediction: Transform) -> Held | None:
-        """Nothing to see (a passer-by filling the view): the motion model's pose for at
-        most ``max_coast_s`` since the last measured one, with the covariance of a robot
-        that may have changed its speed by ``coast_accel_m_s2`` and its turn rate by
-        ``coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2)."""
+        """Nothing to see (a passer-by filling the view): the motion model's pose (the wheel
+        odometry's, where there is some) for at most ``max_coast_s`` since the last measured
+        one, with the covariance of a robot that may have changed its speed by
+        ``coast_accel_m_s2`` and its turn rate by ``coast_angular_accel_rad_s2`` meanwhile
+        (0.5 a t^2)."""
         o = self.options
         if held_s > o.max_coast_s:
             return None

@@ -119,17 +119,19 @@ class TrackingProcessor:
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
         result = out.result
-        # lost, or held on rays: look for the map's keyframes; a match ends either
-        searching = self.tracker.initialised and (self.tracker.holding or (
-            result.estimate is None and self.tracker.lost))
+        # lost (bridged by wheel odometry or not), or held on rays: look for the map's
+        # keyframes; a match ends either
+        bridged = result.status == "bridged"
+        searching = self.tracker.initialised and (self.tracker.holding or self.tracker.lost)
         if searching:
             self._lost_frames += 1
             if (self._lost_frames - 1) % self.options.relocalise_every == 0:  # it costs ~4 KLT steps
                 result = self._relocalise(image, stamp_ns, result)
-            want = result.estimate is not None
+                bridged = result.status == "bridged"
+            want = result.estimate is not None and not bridged
         else:
             want = out.want_features or self.tracker.holding  # held: fresh corners keep the rays coming
-        if result.estimate is not None and not self.tracker.holding:
+        if result.estimate is not None and not self.tracker.holding and not bridged:
             self._lost_frames = 0
         if want:
             self._add_features(image, out, result)

@@ -22,7 +22,10 @@ other source) and, when the target is in view, a trusted target pose with its co
   in a worker thread when ``bundle.background``.
 - Too few map points for PnP (a turn on the spot, a passer-by): the pose is *held*
   (``hold.RayHold``): orientation from every track's ray, position from the points left
-  and the motion model; nothing at all in view: the motion model for at most 0.5 s.
+  and the motion model; nothing at all in view: the motion model for at most 0.5 s. With
+  wheel odometry (``odometry``, an ``odometry.OdometryPrior``) its motion is the
+  prediction and the held position; lost, its pose from the last one is published
+  ("bridged") while the map waits for the camera.
 - Every pose carries a 6x6 covariance: the target's, or this frame's fit (``pose_fit``)
   plus the drift since the target was last trusted (``hold.Drift``).
 - No pose from any of these: the frame is "lost" (no estimate). Recovery is by the
@@ -46,6 +49,7 @@ from positioning.tracking import bundle
 from positioning.tracking.hold import Drift, RayHold
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
+from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import fit_pose
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
@@ -66,6 +70,7 @@ class Tracker:
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: concurrent.futures.Future | None = None
         self.bundle_runs: list[bundle.BundleSolution] = []  # the last few, for benchmarks and tests
+        self.odometry: OdometryPrior | None = None  # wheel odometry, when the robot gives it (kept on reset)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -77,10 +82,9 @@ class Tracker:
         self.initialised = False
         self.lost = False
         self._last: Transform | None = None  # pose of the last frame with one
-        self._last_stamp = 0  # and its time stamp
-        # camera motion per second, (rotation vector, translation) of T_last_next in the
-        # last camera's frame: per second, not per frame, because a live camera's frames
-        # come irregularly (the newest-frame queue skips frames when processing lags)
+        self._last_stamp, self._last_covariance = 0, None  # and its time stamp and covariance
+        # camera motion per second (rotation vector, translation of T_last_next in the last camera's
+        # frame): per second, as a live camera's frames come irregularly (the queue skips when behind)
         self._velocity: tuple[np.ndarray, np.ndarray] | None = None
         self._after_relocalisation = False  # the last pose came from relocalised()
         self._frame_tracks = Tracks.empty()
@@ -95,8 +99,7 @@ class Tracker:
         self._frames_since_keyframe = 0
         self._target_seen = False  # the last frame had a trusted target pose
         self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
-        # the tracks' rays that hold the orientation when too few map points are in view,
-        # and the drift since the target that a tracking pose's covariance carries
+        # the rays that hold the orientation when few map points are in view; the drift since the target
         self._hold = RayHold(self.options, self.fx)
         self._drift = Drift(self.options)
 
@@ -120,7 +123,9 @@ class Tracker:
         tracked, inliers, drop, rms, covariance = self._pnp(tracks, xn, prediction)
         held = None
         if tracked is None and trusted is None and prediction is not None:
-            held = self._hold.hold(stamp_ns, self._last, self._last_stamp, prediction, tracks, xn, self.map)
+            odometry = None if self.odometry is None or not self.odometry.as_prior else self.odometry.covariance(
+                self._hold.since or self._last_stamp, stamp_ns)
+            held = self._hold.hold(stamp_ns, self._last, self._last_stamp, prediction, tracks, xn, self.map, odometry)
         if trusted is not None and tracked is not None and self._anchors(trusted):
             # how far the map's own pose is from the target's: what a tracking pose may be
             # off by as soon as the target leaves (the drift's floor)
@@ -149,11 +154,14 @@ class Tracker:
             state = PoseState.RELOCALISED if self.lost else PoseState.TRACKING
             estimate = PoseEstimate(pose, state, 0, (), rms, self._drift.covariance(self._last, pose, covariance))
         else:
-            self.lost = True
-            self._velocity = None
-            self._target_seen = False
+            self.lost, self._velocity, self._target_seen = True, None, False
             self._hold.end()
             detail = f"{inliers} map points agree with a pose, {self.options.min_pnp_inliers} needed"
+            bridged = None if self.odometry is None or self._last is None else self.odometry.bridge(
+                self._last, self._last_stamp, self._last_covariance, stamp_ns, self.options.max_hold_s)
+            if bridged is not None:  # published, and nothing else: the map waits for the camera
+                estimate = PoseEstimate(bridged[0], PoseState.TRACKING, 0, (), 0.0, bridged[1])
+                return TrackerOutput(FrameResult(estimate, "bridged", f"wheel odometry; {detail}"), False, drop)
             return TrackerOutput(FrameResult(None, "lost", detail), False, drop)
 
         forced = state is PoseState.RELOCALISED
@@ -165,6 +173,7 @@ class Tracker:
             self._hold.end()
         self._hold.rebase(pose if held is None else None, tracks.ids, xn)
         self._frame_sigma = _sigma(trusted.covariance if trusted is not None else covariance)
+        self._last_covariance = estimate.covariance
         self._update_motion(pose, stamp_ns)
         self._frame_pose = pose
         if held is not None:
@@ -189,8 +198,7 @@ class Tracker:
             self._frame_target.T_world_camera if self._frame_target is not None else None)
         if pose is not None:
             self._hold.add(pose, tracks.ids, xn)
-        all_ids = np.concatenate([self._frame_tracks.ids, tracks.ids])
-        all_xn = np.concatenate([self._frame_xn, xn])
+        all_ids, all_xn = np.concatenate([self._frame_tracks.ids, tracks.ids]), np.concatenate([self._frame_xn, xn])
         self._frame_tracks = Tracks(all_ids, np.concatenate([self._frame_tracks.pixels, tracks.pixels]))
         self._frame_xn = all_xn
         if self._frame_keyframe is not None:
@@ -208,21 +216,19 @@ class Tracker:
         fresh corners that ``add_tracks`` brings next can be triangulated against it.
         Returns the pose's covariance: the match's (``covariance``) plus the drift."""
         self._drift.relocalised(covariance)
-        match = covariance
-        covariance = self._drift.covariance(self._last, pose, covariance)
+        match, covariance = covariance, self._drift.covariance(self._last, pose, covariance)
         self._hold.end()
         self.lost = False
         # the velocity stays: a relocalisation corrects where the camera is, not how it
         # moves (spin_on_axis, 4.5 deg a frame: without it the next frame's unguided KLT
         # lost 3/4 of the tracks, three relocalisations in a row and then the track)
-        self._last, self._last_stamp = pose, stamp_ns
+        self._last, self._last_stamp, self._last_covariance = pose, stamp_ns, covariance
         self._after_relocalisation = True
         self._frame_pose, self._frame_stamp = pose, stamp_ns
         self._frame_tracks, self._frame_xn = tracks, undistort(tracks.pixels, self.calibration)
         self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
         self._frame_keyframe.position_sigma_m = _sigma(match)
-        self._frames_since_keyframe = 0
-        self._kf_points_at_insert = len(tracks.ids)
+        self._frames_since_keyframe, self._kf_points_at_insert = 0, len(tracks.ids)
         return covariance
 
     @property
@@ -240,12 +246,10 @@ class Tracker:
                                                                     prediction, tracks, xn, self.map)
             if held is None:
                 self._hold.end()
-                return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty,
-                                     status)
+                return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
             # the target hidden (a passer-by) before the map exists: held on the rays of
             # tracks born on target poses, the map still waits for the target
-            pose, covariance = held
-            covariance = self._drift.covariance(self._last, pose, covariance)  # the path from the last pose
+            pose, covariance = held[0], self._drift.covariance(self._last, held[0], held[1])  # the path since
             self._hold.rebase(None, tracks.ids, xn)
             self._update_motion(pose, stamp_ns)
             self._frame_pose = pose
@@ -278,11 +282,8 @@ class Tracker:
                                      trusted.corners_world, undistort(trusted.corners_px, self.calibration))
         for track_id, point in zip(result.track_ids, result.points_world, strict=True):
             self.map.add_point(int(track_id), point, kf_a.kf_id)
-        self.initialised = True
-        self._frame_keyframe = kf_b
-        self._frame_pose = trusted.T_world_camera
-        self._kf_points_at_insert = len(result.track_ids)
-        self._frames_since_keyframe = 0
+        self.initialised, self._frame_keyframe, self._frame_pose = True, kf_b, trusted.T_world_camera
+        self._kf_points_at_insert, self._frames_since_keyframe = len(result.track_ids), 0
         log.debug("tracker.initialised", detail=result.detail)
         self._schedule_bundle()
         return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
@@ -294,6 +295,10 @@ class Tracker:
         or without a pose): where tracks and the target are looked for."""
         if self._last is None or self.lost:
             return None
+        carried = None if self.odometry is None or not self.odometry.as_prior else self.odometry.predict(
+            self._last, self._last_stamp, stamp_ns)
+        if carried is not None:  # the wheels' motion, where there is odometry
+            return carried
         dt = (stamp_ns - self._last_stamp) / 1e9
         if self._velocity is None or not 0.0 < dt <= self.options.max_extrapolation_s:
             return self._last

@@ -1,0 +1,81 @@
+"""Simulated wheel odometry along a synthetic trajectory, with the errors wheels have.
+
+The robot's base is on the floor under the camera, the mount's horizontal lever behind it
+(``T_base_camera``), heading as the mount says (x, y, heading: wheels measure nothing
+else; the camera may tilt on its mount). Its motion between two samples is corrupted as
+wheel odometry is: every distance scaled by ``1 + scale_error`` (1.5 %: a worn or
+mis-measured wheel), every turn by ``1 + turn_error``, a heading drift of
+``heading_drift_deg_s`` (a slow gyro or wheel-base error), white noise of 0.1 mm and 0.1
+mrad a sample (encoder steps: 3 mm over 20 s at 50 Hz); integrated from the identity in
+the robot's own ``odom`` frame, at ``rate_hz`` (50) on its own clock phase, each sample
+arriving ``latency_s`` after its stamp.
+
+Rows are the ``cubeloc.odometry/1`` JSON of the README, plus ``arrival_ns`` (when the
+sample reached the daemon), one per line: what ``cubeloc track --odometry`` replays.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from positioning.geometry import Transform
+
+ODOMETRY_SCHEMA = "cubeloc.odometry/1"
+
+
+def _planar(T_world_camera: Transform, T_base_camera: Transform) -> tuple[float, float, float]:
+    """The base under a camera (x, y, heading): the base's x is the mount's, seen from the
+    camera and laid flat; its axis the mount's horizontal lever behind the camera. A
+    camera that tilts on its mount (the scenarios look down at the cube, level along the
+    room) tilts over the same base."""
+    ahead = T_world_camera.rotation @ (T_base_camera.rotation.T @ np.array([1.0, 0.0, 0.0]))
+    heading = math.atan2(ahead[1], ahead[0])
+    lx, ly = T_base_camera.translation[:2]
+    c, s = math.cos(heading), math.sin(heading)
+    x, y = T_world_camera.translation[:2]
+    return float(x - lx * c + ly * s), float(y - lx * s - ly * c), heading
+
+
+def simulate_odometry(trajectory: str, seconds: float, T_base_camera: Transform, rate_hz: float = 50.0,
+                      scale_error: float = 0.015, turn_error: float = 0.01, heading_drift_deg_s: float = 0.2,
+                      noise_m: float = 0.0001, noise_rad: float = 0.0001, latency_s: float = 0.03,
+                      phase_s: float = 0.007, seed: int = 0) -> list[dict]:
+    from fakes.trajectories import EPOCH_NS, make_trajectory, trajectory_at
+
+    make_trajectory(trajectory, seconds, rate_hz)  # checks the name and the timing
+    count = int(np.floor((seconds - phase_s) * rate_hz + 1e-9))
+    times = phase_s + np.arange(count) / rate_hz  # the robot's own clock phase, not the camera's
+    truth = trajectory_at(trajectory, times, seconds)
+    rng = np.random.default_rng(seed)
+    planar = [_planar(T, T_base_camera) for T in truth]
+    x, y, heading = 0.0, 0.0, 0.0
+    rows = []
+    for k, t in enumerate(times):
+        if k:
+            (x0, y0, h0), (x1, y1, h1) = planar[k - 1], planar[k]
+            # the true step in the base frame at the start, then as the wheels measure it
+            dx, dy = x1 - x0, y1 - y0
+            ahead, left = math.cos(h0) * dx + math.sin(h0) * dy, -math.sin(h0) * dx + math.cos(h0) * dy
+            turn = math.remainder(h1 - h0, 2 * math.pi)
+            ahead, left = (v * (1 + scale_error) + rng.normal(0, noise_m) for v in (ahead, left))
+            turn = turn * (1 + turn_error) + math.radians(heading_drift_deg_s) / rate_hz + rng.normal(0, noise_rad)
+            x += math.cos(heading) * ahead - math.sin(heading) * left
+            y += math.sin(heading) * ahead + math.cos(heading) * left
+            heading += turn
+        stamp_ns = EPOCH_NS + int(round(t * 1e9))
+        rows.append({"schema": ODOMETRY_SCHEMA, "stamp_ns": stamp_ns, "frame_id": "odom", "child_frame_id": "base_link",
+                     "position": [x, y, 0.0],
+                     "orientation": [float(v) for v in Rotation.from_euler("z", heading).as_quat()],
+                     "arrival_ns": stamp_ns + int(latency_s * 1e9)})
+    return rows
+
+
+def write_odometry(path: Path, rows: list[dict]) -> None:
+    from cubeloc.atomic import atomic_write_text
+
+    atomic_write_text(Path(path), "".join(json.dumps(row) + "\n" for row in rows))

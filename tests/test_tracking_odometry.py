@@ -1,0 +1,67 @@
+"""Wheel odometry through a blank wall (fakes/scenarios.py ``blank_wall``, half resolution,
+bundle adjustment in the frame loop): the same frames with and without simulated odometry
+(fakes/odometry.py: 50 Hz, 30 ms late, 1.5 % scale, 1 % turn, 0.2 deg/s drift)."""
+
+from __future__ import annotations
+
+import numpy as np
+from helpers import half_resolution
+from test_tracking_scenarios import SYNC, score_results
+
+from bench.odometry import mount_of
+from drivers.sequence import read_mono_png, read_sequence_index
+from fakes.odometry import simulate_odometry
+from fakes.sequence import write_synthetic_sequence
+from fakes.trajectories import make_trajectory
+from positioning.geometry import Transform
+from positioning.target import make_cube
+from positioning.tracking.odometry import OdometryBuffer, OdometryPrior
+from positioning.tracking.processor import TrackingProcessor
+from positioning.trajectory_io import read_tum
+
+SECONDS = 26.0
+
+
+def _run(sequence, truth, odometry_rows, mount):
+    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC)
+    buffer = OdometryBuffer()
+    if odometry_rows is not None:
+        processor.tracker.odometry = OdometryPrior(buffer, mount)
+    rows = odometry_rows or []
+    k, results = 0, []
+    try:
+        for i, entry in enumerate(read_sequence_index(sequence)):
+            while k < len(rows) and rows[k]["arrival_ns"] <= entry.stamp_ns:
+                row = rows[k]
+                buffer.add(row["stamp_ns"], row["position"], row["orientation"], now_ns=row["arrival_ns"])
+                k += 1
+            results.append(processor.process(read_mono_png(entry.path), entry.stamp_ns, i))
+    finally:
+        processor.close()
+    return score_results(results, truth), results
+
+
+def test_wheel_odometry_carries_the_pose_across_a_blank_wall(tmp_path_factory):
+    """Measured: vision alone 75.8 % of frames with a pose (63 frames lost at the wall), RMS
+    12.4 mm, max 36.7; with the odometry as the bridge (the default) 100 %, RMS 11.9 mm, max
+    36.7, every pose inside its 3-sigma ellipsoid; and where vision had a pose, the same pose:
+    the bridge publishes, it does not touch the map."""
+    sequence = tmp_path_factory.mktemp("blank_wall") / "blank_wall"
+    write_synthetic_sequence(sequence, "blank_wall", seconds=SECONDS, seed=11, calibration=half_resolution())
+    truth = read_tum(sequence / "groundtruth.tum")
+    xyz, quaternion = mount_of(make_trajectory("blank_wall", SECONDS)[0].T_world_camera)
+    mount = Transform.from_quaternion(xyz, quaternion)
+    rows = simulate_odometry("blank_wall", SECONDS, mount)
+    vision, alone = _run(sequence, truth, None, mount)
+    both, bridged = _run(sequence, truth, rows, mount)
+    assert vision.coverage < 0.9  # the wall does take the pose away without it
+    assert both.coverage == 1.0 and both.longest_gap_frames == 0, both
+    assert both.rmse_m < 0.025 and both.max_m < 0.060, both
+    assert both.consistent >= 0.97 and both.beyond_5_sigma == 0, both
+    for a, b in zip(alone, bridged, strict=True):
+        if a.estimate is not None:
+            assert b.status != "bridged"
+            np.testing.assert_allclose(b.estimate.T_world_camera.matrix(), a.estimate.T_world_camera.matrix(), atol=1e-9)
+        else:
+            assert b.status in ("bridged", "initialising") or b.estimate is not None
+    assert sum(r.status == "bridged" for r in bridged) >= 40
