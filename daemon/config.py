@@ -165,6 +165,12 @@ class Placement(Section):
         return Transform(rotation.as_matrix(), np.array(self.xyz))
 
 
+class TargetPlacement(Placement):
+    """Another target (a second cube, a board) and where it stands in the map."""
+
+    file: Path
+
+
 class FramesConfig(Section):
     """The robot's frames (REP 105). With ``base_from_camera`` or ``map_from_target`` set,
     ``map`` -> ``base_link`` is published beside the camera's pose (``base_pose``); the one
@@ -172,6 +178,8 @@ class FramesConfig(Section):
 
     base_from_camera: Placement | None = Field(None, description="the camera's mount on the robot: T_base_camera")
     map_from_target: Placement | None = Field(None, description="where the target stands in the map: T_map_target")
+    # more targets: [[frames.targets]] file = "...", xyz = [...], rpy_deg = [...] (T_map_target of each)
+    targets: tuple[TargetPlacement, ...] = ()
     map_frame: str = "map"
     base_frame: str = "base_link"
     camera_frame: str = "camera_optical"

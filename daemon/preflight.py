@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from calib.camera_info import CameraCalibration, read_camera_info
 from cubeloc.errors import ConfigError
 from daemon.cameras import make_camera, parse_source
-from daemon.config import Config
+from daemon.config import Config, Placement
 from daemon.zenoh_session import build_zenoh_config
 from positioning.estimator import FrameProcessor
-from positioning.target import Target, load_target
+from positioning.target import Target, combine_targets, load_target
 
 
 @dataclass(frozen=True)
@@ -51,12 +51,22 @@ def read_positioning_files(config: Config) -> Prepared:
             f"camera is set to {camera_size[0]}x{camera_size[1]} (camera.width/height): calibrate "
             "at the camera's resolution or set camera.width and camera.height to match"
         )
-    target = load_target(config.positioning.target)
+    target = combined_target(config)
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:  # replaced between the two reads
         raise ConfigError(f"calibration {path}: cannot read ({exc})") from None
     return Prepared(config, calibration, text, target)
+
+
+def combined_target(config: Config) -> Target:
+    """The target file of ``[positioning]`` and, with ``[[frames.targets]]``, the others
+    moved into its frame by their placements in the map: one rigid target."""
+    primary = load_target(config.positioning.target)
+    T_map_primary = (config.frames.map_from_target or Placement()).transform()
+    others = [(load_target(extra.file), (T_map_primary.inverse() @ extra.transform()).matrix())
+              for extra in config.frames.targets]
+    return combine_targets(primary, others)
 
 
 def make_processor(prepared: Prepared) -> FrameProcessor:

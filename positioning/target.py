@@ -328,6 +328,30 @@ def load_target(path: str | os.PathLike[str]) -> Target:
     return parse_target(doc, str(path))
 
 
+def combine_targets(primary: Target, others: list[tuple[Target, np.ndarray]]) -> Target:
+    """One rigid target from several, in ``primary``'s frame: each other target's tags moved
+    by its 4x4 ``T_primary_other`` (from their placements in the map). Any tag seen then
+    poses the camera in that one frame, and tags of two targets in one view are used
+    together. Refused (InputFileError, one line naming both files) where two share a tag
+    id or the families differ."""
+    tags, owner = list(primary.tags), {t.tag_id: primary.source for t in primary.tags}
+    for target, T in others:
+        if target.family != primary.family:
+            raise InputFileError(f"{target.source}: its family {target.family} is not {primary.family} of "
+                                 f"{primary.source}: several targets must share one tag family")
+        clash = sorted(t.tag_id for t in target.tags if t.tag_id in owner)
+        if clash:
+            raise InputFileError(f"{target.source}: tag id(s) {clash} also in {owner[clash[0]]}: every tag of "
+                                 "every target needs its own id")
+        rotation, translation = np.asarray(T)[:3, :3], np.asarray(T)[:3, 3]
+        for tag in target.tags:
+            tags.append(Tag(tag.tag_id, tag.corners @ rotation.T + translation, tag.face))
+            owner[tag.tag_id] = target.source
+    if not others:
+        return primary
+    return Target(primary.family, tuple(tags), None, " + ".join([primary.source, *(t.source for t, _ in others)]))
+
+
 def default_cube_yaml() -> str:
     """The default target file: the paper's 18 cm cube with 14.4 cm tag36h11 tags, ids 0-5."""
     return "family: tag36h11\ncube: {side: 0.18, tag_size: 0.144, ids: [0, 1, 2, 3, 4, 5]}\n"

@@ -8,8 +8,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-from helpers import half_resolution
-from test_daemon_loop import free_port, listeners  # noqa: F401 (a fixture)
+from helpers import free_port, half_resolution
 
 from calib.camera_info import write_camera_info
 from daemon.cameras import make_camera

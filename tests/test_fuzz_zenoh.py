@@ -18,14 +18,8 @@ import time
 import numpy as np
 import pytest
 import yaml
-from test_daemon_loop import (
-    CAMERA_POSITION,
-    Listener,
-    Script,
-    free_port,
-    make_prepared,
-    start_daemon,
-)
+from helpers import Listener
+from test_daemon_loop import CAMERA_POSITION, Script, free_port, make_prepared, start_daemon
 
 from fakes import render_view
 from positioning.geometry import look_at

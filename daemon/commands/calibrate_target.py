@@ -7,6 +7,10 @@ frame (``positioning.target_calibration``). Prints the report (residuals, each t
 shift and rotation from nominal with its 1-sigma uncertainty) and writes the refined
 target as an explicit-tag target file (interfaces.md), atomically; an existing output is
 replaced only with ``--force``. Use it in place of the nominal file everywhere.
+
+``--place OTHER.yaml``: where a second target stands relative to ``--target``, from images
+showing both (each image posing each target on its own; the relative placements averaged,
+their spread reported): writes the ``[[frames.targets]]`` block for cubeloc.toml.
 """
 
 from __future__ import annotations
@@ -38,8 +42,15 @@ def register(subparsers) -> None:
                         help="image files, directories or quoted globs ('DIR/*.png')")
     parser.add_argument("--target", required=True, metavar="FILE", help="the nominal target definition YAML")
     parser.add_argument("--calib", required=True, metavar="FILE", help="camera_info YAML of the camera")
-    parser.add_argument("--out", required=True, metavar="FILE", help="the refined target YAML to write")
+    parser.add_argument("--out", required=True, metavar="FILE",
+                        help="the refined target YAML to write (with --place: the [[frames.targets]] TOML block)")
     parser.add_argument("--force", action="store_true", help="replace an existing --out file")
+    parser.add_argument("--place", metavar="OTHER.yaml",
+                        help="instead: learn where the target OTHER stands relative to --target, from images that "
+                             "show both; writes its [[frames.targets]] block for cubeloc.toml")
+    parser.add_argument("--config", metavar="FILE",
+                        help="with --place: the cubeloc.toml whose [frames.map_from_target] places --target in the "
+                             "map (the block is then in map coordinates; without it --target's frame is the map)")
     parser.set_defaults(func=run)
 
 
@@ -56,6 +67,8 @@ def run(args) -> int:
         raise InputFileError(f"--out {out}: file exists; pass --force to replace it")
     if out.parent != Path("") and not out.parent.is_dir():
         raise InputFileError(f"--out {out}: directory {out.parent} does not exist")
+    if args.place:
+        return place(args, out)
     nominal = load_target(args.target)
     calibration = read_camera_info(args.calib)
     paths = expand_images(args.images)
@@ -71,4 +84,63 @@ def run(args) -> int:
     )
     atomic_write_text(out, header + result.refined.to_yaml())
     print(f"wrote {out}", file=sys.stdout)
+    return 0
+
+
+MIN_VIEWS_OF_BOTH = 2
+
+
+def place(args, out: Path) -> int:
+    """``--place``: the other target's placement, T_first_other = T_world_camera(first) @
+    inverse(T_world_camera(other)) per image where each gives a pose of its own, averaged
+    (rotations by their mean, translations by theirs) with its spread reported."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from calib.camera_info import read_camera_info
+    from cubeloc.atomic import atomic_write_text
+    from daemon.commands.calibrate import expand_images
+    from daemon.commands.pose import check_image, load_grey
+    from daemon.config import Config, Placement, load_config
+    from positioning.geometry import Transform
+    from positioning.single_frame import TargetPoseProcessor
+    from positioning.target import load_target
+
+    first, other = load_target(args.target), load_target(args.place)
+    if set(first.ids) & set(other.ids):
+        raise InputFileError(f"{args.place}: tag id(s) {sorted(set(first.ids) & set(other.ids))} also in "
+                             f"{args.target}: every tag of every target needs its own id")
+    calibration = read_camera_info(args.calib)
+    T_map_first = ((load_config(args.config) if args.config else Config()).frames.map_from_target
+                   or Placement()).transform()
+    paths = expand_images(args.images)
+    for path in paths:
+        check_image(path, calibration.width, calibration.height)
+    poses = {name: TargetPoseProcessor(target, calibration) for name, target in (("first", first), ("other", other))}
+    relations = []
+    for path in paths:
+        image = load_grey(path)
+        found = {}
+        for name, processor in poses.items():
+            processor.reset()
+            found[name] = processor.process(image, 0, 0).estimate
+        if found["first"] is not None and found["other"] is not None:
+            relations.append(found["first"].T_world_camera @ found["other"].T_world_camera.inverse())
+    if len(relations) < MIN_VIEWS_OF_BOTH:
+        raise InputFileError(f"{args.place}: {len(relations)} of the {len(paths)} images give a pose of both targets; "
+                             f"{MIN_VIEWS_OF_BOTH} or more needed (two faces of each in view)")
+    rotation = Rotation.from_matrix(np.stack([r.rotation for r in relations])).mean()
+    translations = np.array([r.translation for r in relations])
+    relative = Transform(rotation.as_matrix(), translations.mean(axis=0))
+    spread_mm = float(np.sqrt(np.mean(np.sum((translations - relative.translation) ** 2, axis=1)))) * 1000
+    spread_deg = float(np.degrees(np.sqrt(np.mean([relative.rotation_angle_to(r) ** 2 for r in relations]))))
+    placed = T_map_first @ relative
+    xyz = [round(float(v), 6) for v in placed.translation]
+    quaternion = [round(float(v), 9) for v in placed.quaternion()]
+    block = (f"# {args.place} placed by cubeloc calibrate-target from {len(relations)} images of both targets:\n"
+             f"# spread {spread_mm:.1f} mm RMS, {spread_deg:.2f} deg RMS about the mean\n"
+             f'[[frames.targets]]\nfile = "{Path(args.place).resolve()}"\nxyz = {xyz}\nquaternion = {quaternion}\n')
+    print(block, end="")
+    atomic_write_text(out, block)
+    print(f"wrote {out}: add it to cubeloc.toml", file=sys.stdout)
     return 0
