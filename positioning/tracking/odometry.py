@@ -212,6 +212,10 @@ class OdometryPrior:
         camera = axis + self._lever[0] * ahead1 + self._lever[1] * left1
         return Transform(rotation @ last.rotation, camera)
 
+    def prior(self, last: Transform, t0_ns: int, t1_ns: int) -> Transform | None:
+        """``predict`` where the odometry is the tracker's motion prior (``as_prior``), else None."""
+        return self.predict(last, t0_ns, t1_ns) if self.as_prior else None
+
     def bridge(self, last: Transform, last_stamp_ns: int, last_covariance: np.ndarray | None, stamp_ns: int,
                max_s: float) -> tuple[Transform, np.ndarray] | None:
         """The pose to publish while the tracker has none (lost): the last pose carried on by

@@ -295,9 +295,8 @@ class Tracker:
         or without a pose): where tracks and the target are looked for."""
         if self._last is None or self.lost:
             return None
-        carried = None if self.odometry is None or not self.odometry.as_prior else self.odometry.predict(
-            self._last, self._last_stamp, stamp_ns)
-        if carried is not None:  # the wheels' motion, where there is odometry
+        carried = None if self.odometry is None else self.odometry.prior(self._last, self._last_stamp, stamp_ns)
+        if carried is not None:  # the wheels' motion, where there is odometry and it is the prior
             return carried
         dt = (stamp_ns - self._last_stamp) / 1e9
         if self._velocity is None or not 0.0 < dt <= self.options.max_extrapolation_s:
