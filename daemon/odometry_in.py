@@ -21,12 +21,11 @@ import time
 
 import structlog
 
-from daemon.ros2 import dds_type_name, typestore
+from daemon.ros2 import ODOMETRY_TYPE, dds_type_name, typestore
 from positioning.tracking.odometry import OdometryBuffer
 
 log = structlog.get_logger()
 ODOMETRY_SCHEMA = "cubeloc.odometry/1"
-ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 
 
 def odometry_key(config) -> str:
@@ -37,8 +36,9 @@ def odometry_key(config) -> str:
     return f"{config.ros2.domain_id}/{name.strip('/')}/{dds_type_name(ODOMETRY_TYPE)}/*"
 
 
-def read_json(payload: bytes) -> tuple[int, list[float], list[float]]:
-    doc = json.loads(payload)
+def parse_odometry(doc) -> tuple[int, list[float], list[float]]:
+    """(stamp_ns, position, orientation) of a ``cubeloc.odometry/1`` document (a dict);
+    ValueError, KeyError or TypeError when it is not one. Also ``cubeloc track --odometry``'s."""
     if not isinstance(doc, dict) or doc.get("schema", ODOMETRY_SCHEMA) != ODOMETRY_SCHEMA:
         raise ValueError(f"not a {ODOMETRY_SCHEMA} document")
     return int(doc["stamp_ns"]), [float(v) for v in doc["position"]], [float(v) for v in doc["orientation"]]
@@ -54,7 +54,7 @@ class OdometryInput:
 
     def _read(self, payload: bytes) -> tuple[int, list[float], list[float]]:
         if self._types is None:
-            return read_json(payload)
+            return parse_odometry(json.loads(payload))
         message = self._types.deserialize_cdr(payload, ODOMETRY_TYPE)
         stamp = int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
         p, q = message.pose.pose.position, message.pose.pose.orientation

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from calib.camera_info import CameraCalibration, read_camera_info
 from cubeloc.errors import ConfigError
 from daemon.cameras import make_camera, parse_source
-from daemon.config import Config, Placement
+from daemon.config import Config
 from daemon.zenoh_session import build_zenoh_config
 from positioning.estimator import FrameProcessor
 from positioning.target import Target, combine_targets, load_target
@@ -63,7 +63,7 @@ def combined_target(config: Config) -> Target:
     """The target file of ``[positioning]`` and, with ``[[frames.targets]]``, the others
     moved into its frame by their placements in the map: one rigid target."""
     primary = load_target(config.positioning.target)
-    T_map_primary = (config.frames.map_from_target or Placement()).transform()
+    T_map_primary = config.frames.robot_frames().T_map_target
     others = [(load_target(extra.file), (T_map_primary.inverse() @ extra.transform()).matrix())
               for extra in config.frames.targets]
     return combine_targets(primary, others)

@@ -101,7 +101,7 @@ def place(args, out: Path) -> int:
     from cubeloc.atomic import atomic_write_text
     from daemon.commands.calibrate import expand_images
     from daemon.commands.pose import check_image, load_grey
-    from daemon.config import Config, Placement, load_config
+    from daemon.config import Config, load_config
     from positioning.geometry import Transform
     from positioning.single_frame import TargetPoseProcessor
     from positioning.target import load_target
@@ -111,8 +111,7 @@ def place(args, out: Path) -> int:
         raise InputFileError(f"{args.place}: tag id(s) {sorted(set(first.ids) & set(other.ids))} also in "
                              f"{args.target}: every tag of every target needs its own id")
     calibration = read_camera_info(args.calib)
-    T_map_first = ((load_config(args.config) if args.config else Config()).frames.map_from_target
-                   or Placement()).transform()
+    T_map_first = (load_config(args.config) if args.config else Config()).frames.robot_frames().T_map_target
     paths = expand_images(args.images)
     for path in paths:
         check_image(path, calibration.width, calibration.height)

@@ -147,6 +147,7 @@ class _OdometryReplay:
         import json
 
         from cubeloc.errors import InputFileError
+        from daemon.odometry_in import parse_odometry
 
         self.buffer = buffer
         self.rows = []
@@ -159,7 +160,7 @@ class _OdometryReplay:
                 continue
             try:
                 row = json.loads(line)
-                stamp, position, orientation = int(row["stamp_ns"]), row["position"], row["orientation"]
+                stamp, position, orientation = parse_odometry(row)
                 arrival = int(row.get("arrival_ns", stamp))
             except (ValueError, KeyError, TypeError) as exc:
                 raise InputFileError(f"{path}:{number}: not a cubeloc.odometry/1 document ({exc})") from None

@@ -184,18 +184,19 @@ class OdometryPrior:
         """The covariance the odometry gives a camera pose carried from t0 to t1 (a heading
         error moves the camera at the mount's lever arm too), or None."""
         found = self.buffer.motion(t0_ns, t1_ns)
-        if found is None:
-            return None
-        covariance = found[1].copy()
+        return None if found is None else self._camera_covariance(found[1])
+
+    def _camera_covariance(self, base_covariance: np.ndarray) -> np.ndarray:
+        covariance = base_covariance.copy()
         covariance[:3, :3] += np.eye(3) * covariance[3, 3] * self._lever_m**2
         return covariance
 
     def predict(self, last: Transform, t0_ns: int, t1_ns: int) -> Transform | None:
         """The camera pose at t1 from its pose ``last`` at t0, or None (no odometry there)."""
         found = self.buffer.motion(t0_ns, t1_ns)
-        if found is None:
-            return None
-        motion = found[0]
+        return None if found is None else self._carry(last, found[0])
+
+    def _carry(self, last: Transform, motion: Transform) -> Transform | None:
         turn = math.atan2(motion.rotation[1, 0], motion.rotation[0, 0])
         up = self.up
         heading = last.rotation @ self._ahead
@@ -221,9 +222,9 @@ class OdometryPrior:
         """The pose to publish while the tracker has none (lost): the last pose carried on by
         the odometry, its covariance that pose's plus the odometry's since, for at most
         ``max_s``; None past that or without odometry. Nothing of it goes into the map."""
-        if (stamp_ns - last_stamp_ns) / 1e9 > max_s:
+        found = None if (stamp_ns - last_stamp_ns) / 1e9 > max_s else self.buffer.motion(last_stamp_ns, stamp_ns)
+        pose = None if found is None else self._carry(last, found[0])
+        if pose is None:
             return None
-        pose, covariance = self.predict(last, last_stamp_ns, stamp_ns), self.covariance(last_stamp_ns, stamp_ns)
-        if pose is None or covariance is None:
-            return None
+        covariance = self._camera_covariance(found[1])
         return pose, covariance + (np.zeros((6, 6)) if last_covariance is None else last_covariance)
