@@ -102,7 +102,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def measure(images: list[np.ndarray], rate_hz: float, workdir: Path) -> dict:
+def start_daemon(images: list[np.ndarray], rate_hz: float, workdir: Path, **sections):
+    """The real daemon in this process on ``images`` played at ``rate_hz``, Zenoh on a
+    loopback port, ``sections`` added to its config. Returns (daemon, stop, thread,
+    camera, Zenoh endpoint)."""
     from calib.camera_info import paper_camera, write_camera_info
     from daemon.config import Config
     from daemon.logs import configure_logging
@@ -119,12 +122,18 @@ def measure(images: list[np.ndarray], rate_hz: float, workdir: Path) -> dict:
         "camera": {"source": "synthetic:orbit"},  # checked by preflight; PacedFrames streams
         "positioning": {"calibration": workdir / "camera.yaml", "target": workdir / "target.yaml"},
         "zenoh": {"listen": [endpoint], "multicast_scouting": False},
+        **sections,
     })
     stop = threading.Event()
     camera = PacedFrames(images, rate_hz)
     daemon = Daemon(prepare(config), stop, camera_factory=lambda source, settings: camera)
     thread = threading.Thread(target=daemon.run, daemon=True)
     thread.start()
+    return daemon, stop, thread, camera, endpoint
+
+
+def measure(images: list[np.ndarray], rate_hz: float, workdir: Path) -> dict:
+    daemon, stop, thread, camera, endpoint = start_daemon(images, rate_hz, workdir)
     subscriber = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, endpoint], stdin=subprocess.PIPE,
                                   stdout=subprocess.PIPE, text=True)
     assert subscriber.stdout.readline().strip() == "ready"

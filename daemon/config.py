@@ -297,6 +297,39 @@ class OdometryConfig(Section):
         return OdometryBuffer(model, stale_s=self.stale_s, max_extrapolation_s=self.max_extrapolation_s)
 
 
+class FoxgloveConfig(Section):
+    """The Foxglove viewer (daemon/viewer.py): a WebSocket server the Foxglove app connects
+    to; off unless ``listen`` is set. ``127.0.0.1:PORT`` admits clients on this machine only
+    (an SSH tunnel from a laptop); ``0.0.0.0:PORT`` or an interface's address admits others
+    (docs/security.md)."""
+
+    listen: str | None = Field(None, description="HOST:PORT of the WebSocket server; None: off")
+    image_width: int = Field(640, ge=16, le=16384, description="the image channel's width (height to scale)")
+    image_max_hz: float = Field(10.0, gt=0, le=1000, description="image and annotations at most this often")
+    jpeg_quality: int = Field(80, ge=10, le=100)
+    trajectory_poses: int = Field(2000, ge=2, le=100_000, description="the trajectory keeps this many poses")
+
+    @field_validator("listen")
+    @classmethod
+    def _host_port(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_listen(value)
+        return value
+
+    @property
+    def address(self) -> tuple[str, int] | None:
+        return None if self.listen is None else parse_listen(self.listen)
+
+
+def parse_listen(value: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[V6]:PORT`` for IPv6) -> (host, port); ValueError naming the problem."""
+    host, sep, port = value.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"{value!r} is not HOST:PORT (for example 127.0.0.1:8765)")
+    return host, int(port)
+
+
 class LoggingConfig(Section):
     level: Literal["debug", "info", "warning", "error"] = "info"
     format: Literal["auto", "json", "console"] = "auto"
@@ -311,6 +344,7 @@ class Config(Section):
     frames: FramesConfig = FramesConfig()
     ros2: Ros2Config = Ros2Config()
     odometry: OdometryConfig = OdometryConfig()
+    foxglove: FoxgloveConfig = FoxgloveConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @field_validator("name")

@@ -25,7 +25,10 @@ class CapturedFrame:
 
 
 class LatestFrameSlot:
-    """Thread-safe newest-frame slot: ``put`` never blocks, ``get`` waits with a timeout."""
+    """Thread-safe newest-frame slot: ``put`` never blocks, ``get`` waits with a timeout.
+
+    Items are ``CapturedFrame``s (capture -> processing), or any frozen dataclass without
+    a ``restart`` field (processing -> the Foxglove viewer, daemon/viewer.py)."""
 
     def __init__(self) -> None:
         self._condition = threading.Condition()
@@ -37,7 +40,7 @@ class LatestFrameSlot:
         with self._condition:
             if self._item is not None:
                 self._dropped += 1
-                if self._item.restart and not item.restart:  # the reset must not be lost with it
+                if getattr(self._item, "restart", False) and not item.restart:  # the reset must not be lost
                     item = dataclasses.replace(item, restart=True)
             self._item = item
             self._condition.notify()

@@ -32,6 +32,9 @@ from positioning.estimator import FrameProcessor, FrameResult, PoseEstimate
 # Called with (seq, stamp_ns, estimate) for every pose published on ``pose``: the base's
 # pose in the map (``base_pose``), the ROS 2 messages. One that raises costs its own output.
 PoseSink = Callable[[int, int, PoseEstimate], None]
+# Called with every processed frame and its result, pose or not (the Foxglove viewer); it
+# must not block (the viewer's takes the frame into a one-slot queue).
+FrameSink = Callable[[CapturedFrame, FrameResult], None]
 
 log = structlog.get_logger()
 
@@ -55,8 +58,10 @@ class ProcessingLoop:
         capture_stall_s: float,
         summary_period_s: float = 1.0,
         pose_sinks: tuple[PoseSink, ...] = (),
+        frame_sinks: tuple[FrameSink, ...] = (),
     ) -> None:
         self._pose_sinks = pose_sinks
+        self._frame_sinks = frame_sinks
         self._processor = processor
         self._slot = slot
         self._capture = capture
@@ -167,6 +172,12 @@ class ProcessingLoop:
                 bound.exception("frame processor raised")
                 self._stats.record_error()
                 result = FrameResult(None, "error", "the frame processor raised; see the log")
+        for frame_sink in self._frame_sinks:
+            try:
+                frame_sink(item, result)
+            except Exception:  # a bug in a sink: logged and counted, the loop goes on
+                bound.exception("frame sink raised", sink=getattr(frame_sink, "__name__", repr(frame_sink)))
+                self._stats.record_error()
         if result.estimate is None:
             self._stats.record_frame(item.seq, result.status, result.detail, result.tags_seen)
             return

@@ -31,6 +31,7 @@ from daemon.preflight import Prepared, make_processor, read_positioning_files
 from daemon.publisher import ZenohPublisher
 from daemon.ros2 import Ros2Publisher
 from daemon.sdnotify import SystemdNotifier
+from daemon.viewer import LiveViewer
 from daemon.zenoh_session import ZenohUnreachable, open_session
 from drivers.base import Camera, CameraSettings
 from positioning.estimator import FrameProcessor
@@ -80,13 +81,19 @@ class Daemon:
         self._publisher: ZenohPublisher | None = None
         self._ros2: Ros2Publisher | None = None
         self._loop: ProcessingLoop | None = None
+        self._viewer: LiveViewer | None = None
         self.serving = threading.Event()  # set once the Zenoh keys are declared
 
     def run(self) -> int:
         """Run until ``stop`` is set or a finite source ends. Returns the exit code."""
         config = self.config
+        if config.foxglove.listen is not None:  # an address in use or not ours: exit 2 here, at once
+            self._viewer = LiveViewer(config.foxglove, self.prepared.target, self.prepared.calibration,
+                                      config.frames.robot_frames(), name=f"cubeloc {config.name}")
         session = self._open_session()
         if session is None:  # stopped while waiting for the Zenoh router
+            if self._viewer is not None:
+                self._viewer.close()
             self.notifier.close()
             return 0
         status_thread = threading.Thread(target=self._status_loop, name="status", daemon=True)
@@ -98,6 +105,7 @@ class Daemon:
                 expected_size=self.prepared.calibration.size,
                 capture_stall_s=config.camera.frame_timeout_s + CAPTURE_STALL_MARGIN_S,
                 pose_sinks=self._pose_sinks(),
+                frame_sinks=(self._viewer.offer,) if self._viewer is not None else (),
             )
             self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset,
                                              base_pose=config.frames.enabled)
@@ -183,6 +191,8 @@ class Daemon:
         if self._publisher is not None:
             self._publish_status()  # the last word: the camera's final state
             self._publisher.close()
+        if self._viewer is not None:
+            self._viewer.close()
         session.close()
         self.notifier.close()
         # Last, after everything others can see has closed: the tracker waits for a
@@ -228,7 +238,8 @@ class Daemon:
                    # time without a pose since the first one, and now; frames held on rays
                    "lost_s": round(stats.lost_s, 2), "lost_now_s": round(stats.lost_now_s(), 2),
                    "held_frames": stats.held_frames, "reload": dict(self._reloads),
-                   **({"odometry": self.odometry.report()} if self.odometry is not None else {})},
+                   **({"odometry": self.odometry.report()} if self.odometry is not None else {}),
+                   **({"foxglove": self._viewer.report()} if self._viewer is not None else {})},
         )
 
     # -- reload (SIGHUP) -------------------------------------------------------------------
@@ -251,6 +262,8 @@ class Daemon:
         self._publisher.calibration_yaml = prepared.calibration_yaml
         if self._ros2 is not None:
             self._ros2.publish_camera_info(prepared.calibration)
+        if self._viewer is not None:
+            self._viewer.channels.retarget(prepared.target, prepared.calibration)
         self._reloads["ok"] += 1
         self._reloads["last"] = {"ok": True, "stamp_ns": time.time_ns(),
                                  "detail": f"calibration {config.calibration}, target {config.target}"}
@@ -266,8 +279,11 @@ class Daemon:
 
     def _publish_status(self) -> StatusReport:
         report = self.report()
+        document = status_message(report)
         if self._publisher is not None:
-            self._publisher.publish_status(status_message(report))
+            self._publisher.publish_status(document)
+        if self._viewer is not None:
+            self._viewer.status(document)
         self.notifier.status(f"{report.state}, {report.fps:.1f} fps, camera {report.camera.state}")
         return report
 

@@ -10,6 +10,7 @@ dataclasses: no cameras, Zenoh, logging configuration or printing in here.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass
 from typing import Protocol
@@ -43,6 +44,25 @@ class PoseEstimate:
     covariance: np.ndarray | None = None  # (6, 6)
 
 
+class FeatureState(enum.IntEnum):
+    """What a tracked feature is to the tracker in a frame (``FrameView.feature_states``)."""
+
+    MAPPED = 0  # has a 3-D map point that agreed with this frame's pose
+    CANDIDATE = 1  # followed, no map point yet (it gets one when a keyframe triangulates it)
+    OUTLIER = 2  # its map point disagreed with this frame's pose: dropped
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """What the processor saw in the frame, in pixels, for a viewer (``cubeloc run
+    --foxglove``, MCAP): the target's tags decoded (id, (4, 2) corners) and the tracked
+    features (N, 2) with their ``FeatureState``."""
+
+    tags: tuple[tuple[int, np.ndarray], ...] = ()
+    features: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+    feature_states: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.uint8))
+
+
 @dataclass(frozen=True)
 class FrameResult:
     """What positioning made of one frame: a pose, or the reason there is none.
@@ -56,6 +76,7 @@ class FrameResult:
     status: str
     detail: str = ""
     tags_seen: tuple[int, ...] = ()
+    view: FrameView | None = None
 
 
 class FrameProcessor(Protocol):

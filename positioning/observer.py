@@ -127,7 +127,8 @@ class Observation:
 
     ``corners_px`` are the used tags' corners (M, 2) where the returned pose puts them
     (after the edge alignment, the pose's projection of ``pose.points_world``: the edges'
-    information, for the tracker's bundle adjustment); ``seen`` the target's tags decoded.
+    information, for the tracker's bundle adjustment); ``seen`` the target's tags decoded,
+    ``outlines`` each of them with the library's corners (4, 2), for a viewer.
     """
 
     pose: TargetPose | None
@@ -136,6 +137,7 @@ class Observation:
     seen: tuple[int, ...] = ()
     corners_px: np.ndarray | None = None
     search: str = ""  # "predicted", "full", "+completion", "+recovery"; "" when none ran
+    outlines: tuple[tuple[int, np.ndarray], ...] = ()
 
 
 def image_problem(image, calibration: CameraCalibration) -> str | None:
@@ -175,7 +177,7 @@ class TargetObserver:
         self._scale_checked = False
         self.last_search = ""
         self._suspects: set[int] = set()  # this frame's tags whose quads failed refinement
-        self._decoded: set[int] = set()  # this frame's tags decoded by any search
+        self._decoded: dict[int, np.ndarray] = {}  # this frame's tags decoded by any search: corners
         self._masked_ids: set[int] = set()  # tags found only by the masked search
         self._scale_message = ""  # the tag-size warning, repeated on every refused frame
 
@@ -189,7 +191,7 @@ class TargetObserver:
 
     def _ours(self, detections: list[TagDetection]) -> list[TagDetection]:
         ours = unique_target_detections(detections, self.target)
-        self._decoded |= {d.tag_id for d in ours}
+        self._decoded.update((d.tag_id, d.corners) for d in ours)
         return ours
 
     def _detect_in(self, image: np.ndarray, regions: list[TagRegion], decimate: float | None) -> list[TagDetection]:
@@ -324,7 +326,7 @@ class TargetObserver:
 
     def _observe(self, image: np.ndarray, seq: int, full_search: bool) -> Observation:
         self._suspects = set()
-        self._decoded = set()
+        self._decoded = {}
         found = self._search(image, full_search)
         if not found:
             return Observation(None, Refusal.NO_TARGET, "no tag of the target in view", (), None, self.last_search)
@@ -356,6 +358,7 @@ class TargetObserver:
             if recovered is not None:
                 outcome, detections = recovered
         seen = tuple(sorted(self._decoded))  # every tag decoded, used or not
+        outlines = tuple((i, self._decoded[i]) for i in seen)
         if outcome.pose is None:
             detail = outcome.detail
             if outcome.rejected is not None:
@@ -363,7 +366,7 @@ class TargetObserver:
                 if not self._scale_checked:
                     self._scale_message = self._warn_on_scale(detections, outcome.rejected, seq)
                 detail = f"{detail}; {self._scale_message}" if self._scale_message else detail
-            return Observation(None, outcome.refusal, detail, seen, None, self.last_search)
+            return Observation(None, outcome.refusal, detail, seen, None, self.last_search, outlines)
         pose = outcome.pose
         by_id = {d.tag_id: d for d in detections}
         corners_px = np.concatenate([by_id[i].corners for i in pose.tag_ids]).astype(np.float64)
@@ -376,7 +379,7 @@ class TargetObserver:
             pose = dataclasses.replace(pose, covariance=pose_covariance(pose, self.calibration))
         if not self._scale_checked and pose.planes >= 3:
             self._warn_on_scale(detections, pose, seq)
-        return Observation(pose, None, outcome.detail, seen, corners_px, self.last_search)
+        return Observation(pose, None, outcome.detail, seen, corners_px, self.last_search, outlines)
 
     def _warn_on_scale(self, detections: list[TagDetection], pose, seq: int) -> str:
         """Once per reset: does the target file's tag size match the printed tags?

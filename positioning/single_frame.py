@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from calib.camera_info import CameraCalibration
 from positioning.detection import DetectorOptions
-from positioning.estimator import FrameResult, PoseEstimate, PoseState
+from positioning.estimator import FrameResult, FrameView, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
@@ -48,8 +48,9 @@ class TargetPoseProcessor:
         pose = observation.pose
         if pose is None:
             self._last_pose = None
-            return FrameResult(None, observation.refusal.value, observation.detail, observation.seen)
+            return FrameResult(None, observation.refusal.value, observation.detail, observation.seen,
+                               FrameView(observation.outlines))
         self._last_pose = pose.T_world_camera
         estimate = PoseEstimate(pose.T_world_camera, PoseState.TARGET, pose.planes, pose.tag_ids,
                                 pose.reproj_rms_px, pose.covariance)
-        return FrameResult(estimate, "ok", "", observation.seen)
+        return FrameResult(estimate, "ok", "", observation.seen, FrameView(observation.outlines))

@@ -6,7 +6,8 @@ Two sources, one solve (``calib.pipeline``):
   when it is sharp and adds coverage (``calib.coverage``); one terminal line shows the
   coverage bars and what to do next. Capture stops when coverage is good enough, at the
   end of a recorded source, or on Ctrl-C / SIGTERM (then the views so far are solved if
-  there are enough, and nothing is written otherwise). The kept images and their corners
+  there are enough, and nothing is written otherwise). ``--foxglove HOST:PORT`` shows it in
+  the Foxglove app too (daemon/calibration_view.py). The kept images and their corners
   go to ``<out stem>.views/``, so ``--images '<stem>.views/*.png'`` re-solves them.
 * ``--images GLOB...``: any image set; corners are cached in ``corners.yaml`` next to
   the images, so solving again (another model, a fixed principal point) is quick.
@@ -77,6 +78,9 @@ def register(subparsers) -> None:
     parser.add_argument("--fix-aspect-ratio", action="store_true", help="solve one focal length (fx = fy)")
     parser.add_argument("--camera-name", default="camera", help="camera_name in the output (default 'camera')")
     parser.add_argument("--config", metavar="FILE", help="daemon config whose [camera] settings to use (live only)")
+    parser.add_argument("--foxglove", metavar="HOST:PORT",
+                        help="live: show the image, the board, the coverage and the next hint in the Foxglove app "
+                             "(ws://HOST:PORT; 127.0.0.1 for this machine only, 0.0.0.0 for a laptop on the network)")
     parser.add_argument("--min-views", type=int, default=15, help="live: views needed before coverage can finish (default 15)")
     parser.add_argument("--max-views", type=int, default=40, help="live: stop after this many views (default 40)")
     parser.set_defaults(func=run)
@@ -126,6 +130,8 @@ def run(args) -> int:
     out, views_dir, report_png = _outputs(args.out, args.force, live=args.camera is not None)
     options = SolveOptions(model=args.model, fix_principal_point=args.fix_principal_point, fix_aspect_ratio=args.fix_aspect_ratio)
     if args.images:
+        if args.foxglove:
+            raise InputFileError("--foxglove shows a live calibration: use it with --camera, not --images")
         return _run_images(args, board, options, out, report_png)
     return _run_live(args, board, options, out, views_dir, report_png)
 
@@ -173,6 +179,11 @@ def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path
     if args.min_views < MIN_VIEWS or args.max_views < args.min_views:
         raise InputFileError(f"--min-views {args.min_views} / --max-views {args.max_views}: need {MIN_VIEWS} <= min <= max")
     camera = make_camera(args.camera, _camera_settings(args.config))
+    view = None
+    if args.foxglove:  # an address in use or not ours: exit 2 before the camera opens
+        from daemon.calibration_view import CalibrationView
+
+        view = CalibrationView(args.foxglove)
     stop = threading.Event()
     # SIGTERM ends the capture loop cleanly; the handler stays until the results are
     # written, so a SIGTERM while solving or writing lets the writes finish (exit 0)
@@ -186,11 +197,13 @@ def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path
                 raise CameraBusy(f"{exc}; calibrate, then start the daemon again ('systemctl start cubeloc')") from None
             serial = camera.info.serial
             camera.start()
-            accepted, ended = _capture_views(camera, board, args, stop)
+            accepted, ended = _capture_views(camera, board, args, stop, view)
         finally:
             with contextlib.suppress(Exception):
                 camera.stop()
             camera.close()
+            if view is not None:
+                view.close()
         print(f"\ncapture ended: {ended}; {len(accepted)} views kept", flush=True)
         if len(accepted) < MIN_VIEWS:
             raise CubelocError(
@@ -209,7 +222,7 @@ def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path
     return 0
 
 
-def _capture_views(camera, board, args, stop: threading.Event) -> tuple[list[tuple], str]:
+def _capture_views(camera, board, args, stop: threading.Event, view=None) -> tuple[list[tuple], str]:
     """Keep the frames that add coverage until done, out of frames, or asked to stop.
 
     Returns ([(name, image, detection)], why capture ended). On a terminal the status
@@ -247,6 +260,8 @@ def _capture_views(camera, board, args, stop: threading.Event) -> tuple[list[tup
             offer = tracker.offer(detection)
             if offer.accepted:
                 accepted.append((f"view_{len(accepted):03d}.png", image.copy(), detection))
+            if view is not None:
+                view.show(frame.stamp_ns, image, detection, offer, tracker)
             now = time.monotonic()
             if offer.accepted or (interactive and now - last_print > 0.2):
                 line = tracker.status_line() + ("  + " if offer.accepted else "  - ") + offer.reason

@@ -1,15 +1,20 @@
-"""``cubeloc record --out DIR [--camera SOURCE] [--frames N] [--seconds S]``.
+"""``cubeloc record --out DIR [--mcap OUT.mcap] [--camera SOURCE] [--frames N] [--seconds S]``.
 
 Records any camera source (``aravis[:ID]``, ``replay:DIR``, ``synthetic:NAME``) into a
-sequence in the EuRoC layout. Ctrl-C or SIGTERM only set the stop event; the recording
-loop ends and the writer closes, so what is on disk is a valid sequence.
+sequence in the EuRoC layout, and with ``--mcap`` (or instead of it) the camera image
+channel of the Foxglove viewer (``/camera/image``, scaled and rate-limited by ``[foxglove]``,
+with ``/camera/calibration`` when the config's calibration file is readable) into an MCAP
+file. Ctrl-C or SIGTERM only set the stop event; the recording loop ends and the writers
+close, so what is on disk is a valid sequence and a finished MCAP file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
 import threading
+from pathlib import Path
 
 
 def register(subparsers) -> None:
@@ -19,7 +24,8 @@ def register(subparsers) -> None:
         description="Record a camera to DIR/mav0/cam0/{data.csv,data/<ns>.png}. Stop with Ctrl-C "
         "or SIGTERM at any time: the sequence stays valid.",
     )
-    parser.add_argument("--out", required=True, metavar="DIR", help="new sequence directory")
+    parser.add_argument("--out", metavar="DIR", help="new sequence directory")
+    parser.add_argument("--mcap", metavar="OUT.mcap", help="also (or only) the camera image as an MCAP file for Foxglove")
     parser.add_argument("--camera", metavar="SOURCE",
                         help="camera source (default: camera.source from the config), e.g. "
                         "aravis, aravis:SERIAL, aravis:192.168.1.20, replay:DIR")
@@ -30,8 +36,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from pathlib import Path
-
     from cubeloc.errors import ConfigError, InputFileError
     from daemon.cameras import make_camera
     from daemon.config import load_config
@@ -43,10 +47,12 @@ def run(args) -> int:
         raise ConfigError(f"--frames {args.frames}: expected a positive number of frames")
     if args.seconds is not None and args.seconds <= 0:
         raise ConfigError(f"--seconds {args.seconds}: expected a positive duration")
+    if args.out is None and args.mcap is None:
+        raise ConfigError("record: give --out DIR (a sequence), --mcap OUT.mcap, or both")
     config = load_config(args.config)
     configure_logging(config.logging.level, config.logging.format, stream=sys.stderr)
-    out = Path(args.out)
-    if (camera_dir(out) / "data.csv").exists():
+    out = Path(args.out) if args.out else None
+    if out is not None and (camera_dir(out) / "data.csv").exists():
         raise InputFileError(f"{out}: a sequence is already there (choose another --out)")
 
     stop = threading.Event()
@@ -55,7 +61,9 @@ def run(args) -> int:
         camera = make_camera(args.camera or config.camera.source, config.camera.settings())
         with camera:  # opened before the directory is made: a bad camera leaves nothing behind
             camera.start()
-            with SequenceWriter(out) as writer:
+            with contextlib.ExitStack() as stack:
+                writer = _Writers(stack.enter_context(SequenceWriter(out)) if out is not None else None,
+                                  stack.enter_context(_mcap(Path(args.mcap), config)) if args.mcap else None)
                 summary = record_sequence(camera, writer, stop=stop, max_frames=args.frames,
                                           max_seconds=args.seconds,
                                           frame_timeout_s=config.camera.frame_timeout_s)
@@ -63,7 +71,38 @@ def run(args) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     stats = summary.stats
-    print(f"recorded {summary.frames} frames in {summary.seconds:.1f} s to {out} "
+    where = " and ".join(str(p) for p in (out, args.mcap) if p is not None)
+    print(f"recorded {summary.frames} frames in {summary.seconds:.1f} s to {where} "
           f"({summary.reason}); dropped: {stats.incomplete} incomplete, {stats.bad_timestamp} bad "
           f"timestamps, {stats.frame_id_gaps} frame-id gaps; reconnects: {stats.reconnects}")
     return 0
+
+
+class _Writers:
+    """The sequence and the MCAP file as one writer (``record_sequence`` writes to it)."""
+
+    def __init__(self, sequence, mcap) -> None:
+        self.sequence, self.mcap, self.frames = sequence, mcap, 0
+
+    def write(self, stamp_ns: int, image) -> None:
+        from positioning.estimator import FrameResult
+
+        if self.sequence is not None:
+            self.sequence.write(stamp_ns, image)
+        if self.mcap is not None:
+            self.mcap.frame(stamp_ns, image, FrameResult(None, "recorded"))
+        self.frames += 1
+
+
+def _mcap(path: Path, config):
+    """The MCAP recording, with the config's calibration where it can be read (for the
+    Image panel's overlay); a recording needs no target."""
+    from calib.camera_info import read_camera_info
+    from cubeloc.errors import CubelocError
+    from daemon.viewer import McapRecording
+
+    try:
+        calibration = read_camera_info(config.positioning.calibration)
+    except CubelocError:
+        calibration = None
+    return McapRecording(path, None, calibration, config.frames.robot_frames(), config.foxglove)

@@ -24,6 +24,9 @@ def register(subparsers) -> None:
     parser.add_argument("--config", metavar="FILE", help="TOML config file (see systemd/cubeloc.toml)")
     parser.add_argument("--name", help="override the config's name (the key is cubeloc/<name>/...)")
     parser.add_argument("--source", metavar="SOURCE", help="override camera.source, e.g. aravis:SERIAL, replay:DIR, synthetic:paper")
+    parser.add_argument("--foxglove", metavar="HOST:PORT",
+                        help="serve the Foxglove viewer there (sets [foxglove] listen); 127.0.0.1:8765 for "
+                             "this machine only, 0.0.0.0:8765 to admit other hosts (docs/security.md)")
     parser.add_argument("--check", action="store_true", help="check the config and its files, then exit (0 if all is well)")
     add_zenoh_arguments(parser)
     parser.set_defaults(func=run)
@@ -44,6 +47,8 @@ def load_for_command_line(args):
     document["zenoh"] = settings_from_arguments(config.zenoh, args).model_dump(exclude_unset=True)
     if getattr(args, "name", None):
         document["name"] = args.name
+    if getattr(args, "foxglove", None):
+        document.setdefault("foxglove", {})["listen"] = args.foxglove
     if getattr(args, "source", None):
         document.setdefault("camera", {})["source"] = args.source
     try:

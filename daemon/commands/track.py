@@ -3,8 +3,10 @@
 Replays a recorded sequence (EuRoC layout) through the same ``TrackingProcessor`` the
 daemon runs: initialisation on the target, then tracking, relocalisation and correction
 by the target. Writes every frame with a pose to ``OUT.tum`` (T_world_camera, TUM
-format, readable by ``evo_ape tum``), prints a summary line per state and, when
+format, readable by ``evo_ape tum``) and ``OUT.png`` (daemon/plots.py: the trajectory from above coloured
+by state, the error over time), prints a summary line per state and, when
 ``DIR/groundtruth.tum`` exists, the RMS absolute trajectory error with no alignment.
+``--mcap OUT.mcap`` also writes the Foxglove viewer's channels (daemon/viewer.py).
 A frame that cannot be read or has the wrong size is dropped and counted (``dropped N``
 in the summary, a warning naming it), as a camera's bad frame; ``--strict`` stops there
 with exit 2.
@@ -42,6 +44,10 @@ def register(subparsers) -> None:
     parser.add_argument("--odometry", metavar="FILE.jsonl",
                         help="wheel odometry to replay with the frames: cubeloc.odometry/1 documents, one per "
                              "line in the order they arrived (each from its arrival_ns, else its stamp_ns)")
+    parser.add_argument("--mcap", metavar="OUT.mcap",
+                        help="also write the Foxglove viewer's channels (image, tags, features, pose, trajectory, "
+                             "target) to an MCAP file, timed by the frames' stamps, to open in Foxglove")
+    parser.add_argument("--no-plot", action="store_true", help="do not write OUT.png (the trajectory and error plot)")
     parser.add_argument("--config", metavar="FILE",
                         help="a cubeloc.toml whose [frames] (the camera's mount) and [odometry] (its error "
                              "model) go with --odometry")
@@ -56,6 +62,7 @@ def run(args) -> int:
     from calib.camera_info import read_camera_info
     from cubeloc.atomic import atomic_write_text
     from cubeloc.errors import InputFileError
+    from daemon.config import Config, load_config
     from daemon.logs import configure_logging
     from daemon.messages import UnpublishablePose, encode, pose_payload
     from drivers.sequence import read_mono_png, read_sequence_index
@@ -70,6 +77,7 @@ def run(args) -> int:
     calibration = read_camera_info(args.calib)
     entries = read_sequence_index(args.sequence)
     out = Path(args.out)
+    config = load_config(args.config) if args.config else Config()
     for path in (out, Path(args.poses) if args.poses else None):
         if path is not None and not path.parent.is_dir():
             raise InputFileError(f"{path}: the directory {path.parent} does not exist")
@@ -80,8 +88,15 @@ def run(args) -> int:
     options = replace(defaults, tracker=replace(
         defaults.tracker, bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
     processor = TrackingProcessor(target, calibration, options)
-    odometry = _odometry(args, processor) if args.odometry else None
+    odometry = _odometry(args, config, processor) if args.odometry else None
+    recording = None
+    if args.mcap:
+        from daemon.viewer import McapRecording
+
+        recording = McapRecording(Path(args.mcap), target, calibration, config.frames.robot_frames(),
+                                  config.foxglove)
     poses: list[StampedPose] = []
+    pose_states: list[str] = []
     payloads: list[str] = []
     states: Counter[str] = Counter()
     started = time.perf_counter()
@@ -103,8 +118,11 @@ def run(args) -> int:
             if odometry is not None:
                 odometry.feed(entry.stamp_ns)
             result = processor.process(image, entry.stamp_ns, seq)
+            if recording is not None:
+                recording.frame(entry.stamp_ns, image, result)
             if result.estimate is not None:
                 poses.append(StampedPose(entry.stamp_ns, result.estimate.T_world_camera))
+                pose_states.append(result.estimate.state.value)
                 states[result.estimate.state.value] += 1
                 if args.poses:
                     try:
@@ -115,6 +133,8 @@ def run(args) -> int:
                 states[result.status] += 1
     finally:
         processor.close()
+        if recording is not None:
+            recording.close()
     elapsed = time.perf_counter() - started
     write_tum(out, poses)
     if args.poses:
@@ -126,15 +146,26 @@ def run(args) -> int:
             states[f"odometry dropped ({reason})"] = count
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
     print(f"{len(entries)} frames in {elapsed:.1f} s ({len(entries) / max(elapsed, 1e-9):.1f} fps): {summary}")
-    print(f"wrote {len(poses)} poses to {out}" + (f" and {args.poses}" if args.poses else ""))
-    if groundtruth is not None:
-        if not poses:
-            print("no pose to compare with the ground truth", file=sys.stderr)
-            return 1
+    written = [str(out)] + ([args.poses] if args.poses else []) + ([args.mcap] if args.mcap else [])
+    print(f"wrote {len(poses)} poses to {', '.join(written)}")
+    ate = None
+    if groundtruth is not None and poses:
         try:
             ate = absolute_trajectory_error(groundtruth, poses)
         except ValueError as exc:
             raise InputFileError(f"{groundtruth_path}: {exc}") from None
+    if not args.no_plot:
+        from daemon.plots import plot_track
+
+        picture = out.with_suffix(".png")
+        plot_track(picture, poses, pose_states, groundtruth, f"cubeloc track {Path(args.sequence).name}: "
+                   f"{len(poses)} poses of {len(entries)} frames",
+                   None if ate is None else (ate.stamps_ns, ate.errors_m))
+        print(f"plot: {picture}")
+    if groundtruth is not None:
+        if ate is None:
+            print("no pose to compare with the ground truth", file=sys.stderr)
+            return 1
         print(f"ATE (no alignment, {ate.count} poses): RMS {ate.rmse_m * 1000:.2f} mm, "
               f"median {ate.median_m * 1000:.2f} mm, max {ate.max_m * 1000:.2f} mm")
     return 0
@@ -174,11 +205,9 @@ class _OdometryReplay:
             self._next += 1
 
 
-def _odometry(args, processor) -> _OdometryReplay:
-    from daemon.config import Config, load_config
+def _odometry(args, config, processor) -> _OdometryReplay:
     from positioning.tracking.odometry import OdometryPrior
 
-    config = load_config(args.config) if args.config else Config()
     buffer = config.odometry.buffer()
     replay = _OdometryReplay(Path(args.odometry), buffer)  # a bad file stops here, with one line
     if not config.frames.enabled:

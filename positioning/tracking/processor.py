@@ -22,7 +22,7 @@ import numpy as np
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_normalised
 from positioning.detection import DetectorOptions
-from positioning.estimator import FrameResult, PoseEstimate, PoseState
+from positioning.estimator import FeatureState, FrameResult, FrameView, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
@@ -76,7 +76,7 @@ class TrackingProcessor:
 
     # ------------------------------------------------------------------ target
     def _observe_target(self, image: np.ndarray, stamp_ns: int, seq: int
-                        ) -> tuple[TargetObservation | None, tuple[int, ...]]:
+                        ) -> tuple[TargetObservation | None, tuple[int, ...], tuple]:
         """The target, searched where the motion model puts it in this frame (the last
         pose alone left a spinning camera's target outside its predicted regions); over the
         full frame when there is no pose, when lost, or every ``target_search_every``
@@ -94,10 +94,11 @@ class TrackingProcessor:
         pose = observed.pose
         if pose is None:
             self._last_target_pose = None
-            return None, observed.seen
+            return None, observed.seen, observed.outlines
         self._last_target_pose = pose.T_world_camera
         return TargetObservation(pose.T_world_camera, pose.planes, pose.tag_ids, pose.reproj_rms_px,
-                                 observed.corners_px, pose.points_world, pose.covariance), observed.seen
+                                 observed.corners_px, pose.points_world, pose.covariance), observed.seen, \
+            observed.outlines
 
     def _target_outline(self, pose: Transform | None) -> np.ndarray | None:
         if pose is None:
@@ -115,7 +116,7 @@ class TrackingProcessor:
             return FrameResult(None, "bad_image", problem)
         guesses = self.tracker.predict_pixels(stamp_ns, self.front_end.ids, self.front_end.pixels)
         tracks = self.front_end.track(image, guesses)
-        observation, seen = self._observe_target(image, stamp_ns, seq)
+        observation, seen, outlines = self._observe_target(image, stamp_ns, seq)
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
         result = out.result
@@ -135,7 +136,15 @@ class TrackingProcessor:
             self._lost_frames = 0
         if want:
             self._add_features(image, out, result)
-        return FrameResult(result.estimate, result.status, result.detail, seen)
+        return FrameResult(result.estimate, result.status, result.detail, seen, self._view(outlines, tracks, out))
+
+    def _view(self, outlines: tuple, tracks: Tracks, out: TrackerOutput) -> FrameView:
+        """The frame for a viewer: the tags decoded, the features followed into it by state."""
+        states = np.full(len(tracks.ids), FeatureState.CANDIDATE, np.uint8)
+        points = self.tracker.map.points
+        states[np.fromiter((int(t) in points for t in tracks.ids), bool, len(tracks.ids))] = FeatureState.MAPPED
+        states[np.isin(tracks.ids, out.drop_ids)] = FeatureState.OUTLIER
+        return FrameView(outlines, tracks.pixels, states)
 
     def _add_features(self, image: np.ndarray, out: TrackerOutput, result: FrameResult) -> None:
         pose = result.estimate.T_world_camera if result.estimate is not None else self._last_target_pose
