@@ -33,6 +33,7 @@ VERB_MODULES = (
     "daemon.commands.calibrate",
     "daemon.commands.calibrate_target",
     "daemon.commands.doctor",
+    "daemon.commands.map",
 )
 
 

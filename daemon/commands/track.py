@@ -23,6 +23,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
+MAP_KEYFRAMES = 400  # a map to save or loaded keeps this many keyframes by default (~17 kB each)
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -47,6 +49,11 @@ def register(subparsers) -> None:
     parser.add_argument("--mcap", metavar="OUT.mcap",
                         help="also write the Foxglove viewer's channels (image, tags, features, pose, trajectory, "
                              "target) to an MCAP file, timed by the frames' stamps, to open in Foxglove")
+    parser.add_argument("--map", metavar="MAP", help="start from a saved map (cubeloc.map/1): relocalise in it "
+                        "without the cube")
+    parser.add_argument("--save-map", metavar="MAP", help="write the map at the end of the sequence (cubeloc.map/1)")
+    parser.add_argument("--map-keyframes", type=int, default=None, metavar="N",
+                        help="keyframes the map keeps (oldest dropped first); default 40, 400 with --save-map")
     parser.add_argument("--no-plot", action="store_true", help="do not write OUT.png (the trajectory and error plot)")
     parser.add_argument("--config", metavar="FILE",
                         help="a cubeloc.toml whose [frames] (the camera's mount) and [odometry] (its error "
@@ -85,9 +92,21 @@ def run(args) -> int:
     groundtruth = read_tum(groundtruth_path) if groundtruth_path.is_file() else None
 
     defaults = ProcessorOptions()
+    keyframes = args.map_keyframes or (MAP_KEYFRAMES if args.save_map or args.map else defaults.tracker.max_keyframes)
+    if keyframes < 2:
+        raise InputFileError(f"--map-keyframes {keyframes}: at least 2")
     options = replace(defaults, tracker=replace(
-        defaults.tracker, bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
+        defaults.tracker, max_keyframes=keyframes,
+        bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
+    for path in (args.save_map, args.mcap):
+        if path is not None and not Path(path).parent.is_dir():
+            raise InputFileError(f"{path}: the directory {Path(path).parent} does not exist")
     processor = TrackingProcessor(target, calibration, options)
+    if args.map:
+        from positioning.tracking.map_file import load_map
+
+        world_map, _ = load_map(Path(args.map), calibration, target)
+        processor.start_from_map(world_map)
     odometry = _odometry(args, config, processor) if args.odometry else None
     recording = None
     if args.mcap:
@@ -135,6 +154,11 @@ def run(args) -> int:
         processor.close()
         if recording is not None:
             recording.close()
+    if args.save_map:
+        from positioning.tracking.map_file import save_map
+
+        header = save_map(Path(args.save_map), processor.tracker.map, calibration, target)
+        print(f"map: {header['keyframes']} keyframes, {header['points']} points to {args.save_map}")
     elapsed = time.perf_counter() - started
     write_tum(out, poses)
     if args.poses:

@@ -87,6 +87,11 @@ def build_problem(world_map: Map, options: BundleOptions) -> BundleProblem | Non
     point_ids_set: set[int] = set()
     for kf in window:
         point_ids_set.update(int(t) for t in kf.track_ids if int(t) in world_map.points)
+    # a loaded map's points are the reference, as the target's corners are: fixed world
+    # points (held only by one fixed keyframe's ray each, free ones slid along them and
+    # the keyframes after a boot relocalisation with them: 80 mm off in three frames)
+    reference = {p for p in point_ids_set if world_map.point_birth.get(p) in world_map.fixed}
+    point_ids_set -= reference
     if not point_ids_set:
         return None
     older = keyframes[: -options.window_keyframes]
@@ -102,8 +107,9 @@ def build_problem(world_map: Map, options: BundleOptions) -> BundleProblem | Non
         if any(int(t) in point_index for t in kf.track_ids)
     ][-options.window_keyframes:]
     used = fixed_outside + window
-    free = np.array([kf.kf_id in window_ids for kf in used])
-    if not any(kf.anchored for kf in window) and not fixed_outside:
+    # a loaded map's keyframes (world_map.fixed) are the reference: held, never adjusted
+    free = np.array([kf.kf_id in window_ids and kf.kf_id not in world_map.fixed for kf in used])
+    if not any(kf.anchored for kf in window) and free.all():
         # no target and no older keyframe: hold the two oldest of the window (gauge)
         free[: min(2, len(used) - 1)] = False
     obs_kf, obs_pt, obs_xn = [], [], []
@@ -119,6 +125,12 @@ def build_problem(world_map: Map, options: BundleOptions) -> BundleProblem | Non
             tgt_kf.extend([k] * len(kf.target_world))
             tgt_world.append(kf.target_world)
             tgt_xn.append(kf.target_xn)
+        if reference and free[k]:
+            rows = [i for i, t in enumerate(kf.track_ids) if int(t) in reference]
+            if rows:
+                tgt_kf.extend([k] * len(rows))
+                tgt_world.append(np.array([world_map.points[int(kf.track_ids[i])] for i in rows]))
+                tgt_xn.append(kf.xn[rows])
     return BundleProblem(
         epoch=world_map.epoch,
         points_added=world_map.points_added,

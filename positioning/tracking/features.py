@@ -56,6 +56,10 @@ class KltFrontEnd:
         if self._aligner is not None:
             self._aligner.reset()
 
+    def ids_from(self, first: int) -> None:
+        """New tracks get ids from ``first`` on (above a loaded map's point ids)."""
+        self._next_id = max(self._next_id, int(first))
+
     def _keep(self, keep: np.ndarray) -> None:
         self.ids, self.pixels = self.ids[keep], self.pixels[keep]
         if self._aligner is not None:

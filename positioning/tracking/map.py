@@ -52,6 +52,9 @@ class Keyframe:
             self._index[int(t)] = i
 
 
+FIXED_BIRTH = -2
+
+
 class Map:
     """Keyframes in insertion order and points by track id."""
 
@@ -65,6 +68,10 @@ class Map:
         # Bumped whenever the map is moved as a whole (correction, reset), so that a bundle
         # adjustment computed on the old map is not applied to the new one.
         self.epoch = 0
+        # Keyframe ids a correction must not move (a map loaded from a file: it was made
+        # with the cube and is the reference); FIXED_BIRTH is the birth of its points whose
+        # keyframe had been culled before it was saved.
+        self.fixed: set[int] = set()
 
     def __len__(self) -> int:
         return len(self.points)
@@ -133,19 +140,21 @@ class Map:
         """Move the drifted part of the map (what was built without the target) by
         ``correction`` (T_true_drifted): the target's return says where it really is."""
         for kf in self.keyframes.values():
-            if not kf.anchored:
+            if not kf.anchored and kf.kf_id not in self.fixed:
                 kf.T_world_camera = correction @ kf.T_world_camera
         for track_id, birth in self.point_birth.items():
             kf = self.keyframes.get(birth)
-            if kf is None or not kf.anchored:
+            if birth not in self.fixed and (kf is None or not kf.anchored):
                 self.points[track_id] = correction.apply(self.points[track_id][None])[0]
         self.epoch += 1
 
     def cull(self, max_keyframes: int, live_track_ids: set[int]) -> None:
-        """Drop the oldest keyframes beyond ``max_keyframes`` and the points nobody holds:
-        no remaining keyframe observes them and no live track follows them."""
-        while len(self.keyframes) > max_keyframes:
-            self.keyframes.popitem(last=False)
+        """Drop the oldest keyframes beyond ``max_keyframes`` (a loaded map's, ``fixed``,
+        stay and do not count) and the points nobody holds: no remaining keyframe observes
+        them and no live track follows them."""
+        built = [k for k in self.keyframes if k not in self.fixed]
+        for kf_id in built[: max(0, len(built) - max_keyframes)]:
+            del self.keyframes[kf_id]
         if not self.points:
             return
         ids = np.fromiter(self.points.keys(), np.int64, len(self.points))

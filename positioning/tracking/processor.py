@@ -15,6 +15,7 @@ no estimate with status ``initialising`` or ``lost``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,6 +46,9 @@ class ProcessorOptions:
     # the pose aligned to every cell edge; both on by default, as in ``cubeloc pose``.
     edge_refinement: bool = True
     edge_alignment: bool = True
+    # Started from a saved map (start_from_map): a relocalisation is published only after
+    # this many frames tracked on from it in a row (a wrong one is worse than none)
+    boot_verify_frames: int = 3
 
 
 class TrackingProcessor:
@@ -62,6 +66,20 @@ class TrackingProcessor:
         self._frames_without_target = 0
         self._last_target_pose: Transform | None = None
         self._lost_frames = 0
+        self._booting = False  # started from a saved map, nothing published yet
+        self._agreeing = 0  # frames tracked in a row since the boot relocalisation
+
+    def start_from_map(self, world_map) -> None:
+        """Track on ``world_map`` (a ``map.Map`` loaded from a file, positioning/tracking/
+        map_file.py) from the next frame: relocalise against its keyframes until a place
+        is found, verified over ``boot_verify_frames``, or the cube is seen."""
+        self.reset()
+        self.tracker.map = world_map
+        self.tracker.initialised, self.tracker.lost = True, True
+        ids = [max(world_map.points, default=-1)] + [int(kf.track_ids.max()) for kf in world_map.keyframes.values()
+                                                     if len(kf.track_ids)]
+        self.front_end.ids_from(max(ids) + 1)
+        self._booting, self._agreeing = True, 0
 
     def reset(self) -> None:
         self.tracker.reset()
@@ -69,6 +87,7 @@ class TrackingProcessor:
         self._frames_without_target = 0
         self._last_target_pose = None
         self._lost_frames = 0
+        self._booting, self._agreeing = False, 0
         self.observer.reset()
 
     def close(self) -> None:
@@ -126,7 +145,8 @@ class TrackingProcessor:
         searching = self.tracker.initialised and (self.tracker.holding or self.tracker.lost)
         if searching:
             self._lost_frames += 1
-            if (self._lost_frames - 1) % self.options.relocalise_every == 0:  # it costs ~4 KLT steps
+            every = 1 if self._booting else self.options.relocalise_every  # at boot nothing else can give a pose
+            if (self._lost_frames - 1) % every == 0:  # it costs ~4 KLT steps
                 result = self._relocalise(image, stamp_ns, result)
                 bridged = result.status == "bridged"
             want = result.estimate is not None and not bridged
@@ -136,7 +156,29 @@ class TrackingProcessor:
             self._lost_frames = 0
         if want:
             self._add_features(image, out, result)
+        if self._booting:
+            result = self._verified(result)
         return FrameResult(result.estimate, result.status, result.detail, seen, self._view(outlines, tracks, out))
+
+    def _verified(self, result: FrameResult) -> FrameResult:
+        """While booting on a saved map: the cube's pose goes out at once; a place found
+        in the map only after it was tracked on for ``boot_verify_frames`` frames in a row
+        (held or lost frames start the count again), its first pose as ``relocalised``."""
+        estimate = result.estimate
+        if estimate is not None and estimate.planes > 0:  # the cube: trusted as always
+            self._booting = False
+            return result
+        if estimate is None or result.detail.startswith("held") or result.status == "bridged":
+            self._agreeing = 0
+            return FrameResult(None, "waiting", "waiting for a known place of the map or the cube")
+        self._agreeing += 1
+        needed = self.options.boot_verify_frames
+        if self._agreeing < needed:
+            return FrameResult(None, "verifying", f"a place of the map found: {self._agreeing} of {needed} "
+                                                  "frames agree")
+        self._booting = False
+        return FrameResult(dataclasses.replace(estimate, state=PoseState.RELOCALISED), "relocalised",
+                           f"a place of the map, verified over {needed} frames")
 
     def _view(self, outlines: tuple, tracks: Tracks, out: TrackerOutput) -> FrameView:
         """The frame for a viewer: the tags decoded, the features followed into it by state."""
