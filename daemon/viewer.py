@@ -247,11 +247,10 @@ class SceneChannels:
         used = set(result.estimate.tag_ids) if result.estimate is not None else set()
         view = result.view
         for tag_id, corners in (view.tags if view is not None else ()):
-            colour = rgba(GREEN if tag_id in used else ORANGE)
+            colour = GREEN if tag_id in used else ORANGE
             points.append(fm.PointsAnnotation(timestamp=stamp, type=fm.PointsAnnotationType.LineLoop,
-                                              points=px(corners), outline_color=colour, thickness=2.0))
-            centre = px(corners.mean(axis=0, keepdims=True))[0]
-            texts.append(label(stamp, centre, str(tag_id), GREEN if tag_id in used else ORANGE))
+                                              points=px(corners), outline_color=rgba(colour), thickness=2.0))
+            texts.append(label(stamp, px(corners.mean(axis=0, keepdims=True))[0], str(tag_id), colour))
         if view is not None and len(view.features):
             colours = [rgba(FEATURE_COLOURS[FeatureState(int(k))]) for k in view.feature_states]
             points.append(fm.PointsAnnotation(
@@ -331,6 +330,7 @@ class LiveViewer:
         self.channels = SceneChannels(self.context, target, calibration, frames, config)
         self.server = serve(self.context, config.listen, name)
         self.port = self.server.port
+        self.listen = f"{config.address[0]}:{self.port}"
         self._slot = LatestFrameSlot()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="foxglove", daemon=True)
@@ -345,12 +345,7 @@ class LiveViewer:
 
     def report(self) -> dict:
         # dropped: frames the viewer's thread had no time for (the loop never waited)
-        return {**self.channels.stats.report(), "dropped": self._slot.dropped,
-                "listen": f"{self.server_host}:{self.port}"}
-
-    @property
-    def server_host(self) -> str:
-        return self.channels.config.address[0]
+        return {**self.channels.stats.report(), "dropped": self._slot.dropped, "listen": self.listen}
 
     def _run(self) -> None:
         while not self._stop.is_set():

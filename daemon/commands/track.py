@@ -85,22 +85,20 @@ def run(args) -> int:
     entries = read_sequence_index(args.sequence)
     out = Path(args.out)
     config = load_config(args.config) if args.config else Config()
-    for path in (out, Path(args.poses) if args.poses else None):
-        if path is not None and not path.parent.is_dir():
-            raise InputFileError(f"{path}: the directory {path.parent} does not exist")
+    for path in (out, args.poses, args.save_map):  # (--mcap: McapRecording checks its own)
+        if path is not None and not Path(path).parent.is_dir():
+            raise InputFileError(f"{path}: the directory {Path(path).parent} does not exist")
     groundtruth_path = Path(args.sequence) / "groundtruth.tum"
     groundtruth = read_tum(groundtruth_path) if groundtruth_path.is_file() else None
 
     defaults = ProcessorOptions()
-    keyframes = args.map_keyframes or (MAP_KEYFRAMES if args.save_map or args.map else defaults.tracker.max_keyframes)
+    keyframes = args.map_keyframes if args.map_keyframes is not None else (
+        MAP_KEYFRAMES if args.save_map or args.map else defaults.tracker.max_keyframes)
     if keyframes < 2:
         raise InputFileError(f"--map-keyframes {keyframes}: at least 2")
     options = replace(defaults, tracker=replace(
         defaults.tracker, max_keyframes=keyframes,
         bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
-    for path in (args.save_map, args.mcap):
-        if path is not None and not Path(path).parent.is_dir():
-            raise InputFileError(f"{path}: the directory {Path(path).parent} does not exist")
     processor = TrackingProcessor(target, calibration, options)
     if args.map:
         from positioning.tracking.map_file import load_map

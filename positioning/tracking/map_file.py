@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.camera_info import CameraCalibration
+from cubeloc import __version__
 from cubeloc.atomic import atomic_open
 from cubeloc.errors import InputFileError
 from positioning.geometry import Transform
@@ -75,7 +76,7 @@ def save_map(path: Path, world_map: Map, calibration: CameraCalibration, target:
     keyframes = list(world_map.keyframes.values())
     point_ids = np.fromiter(world_map.points, np.int64, len(world_map.points))
     header = {
-        "schema": SCHEMA, "created_ns": time.time_ns(), "software": _version(),
+        "schema": SCHEMA, "created_ns": time.time_ns(), "software": __version__,
         "calibration": {"width": calibration.width, "height": calibration.height,
                         "model": calibration.distortion_model, "fingerprint": calibration_fingerprint(calibration)},
         "target": {"family": target.family, "ids": list(target.ids), "fingerprint": target_fingerprint(target)},
@@ -211,9 +212,3 @@ def export_ply(path: Path, out: Path) -> tuple[int, int]:
     with atomic_open(out, "w") as handle:
         handle.write(text.getvalue())
     return len(a["points"]), len(a["kf_poses"])
-
-
-def _version() -> str:
-    from cubeloc import __version__
-
-    return __version__
