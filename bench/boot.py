@@ -90,7 +90,7 @@ def run_start(map_path: Path, poses: list, room, seed: int) -> dict:
 
     camera, cube = paper_camera(), make_cube()
     processor = TrackingProcessor(cube, camera)
-    processor.start_from_map(load_map(map_path, camera, cube)[0])
+    processor.start_from_map(lambda: load_map(map_path, camera, cube)[0])
     first, errors, cpu = None, [], 0.0
     try:
         for k, truth in enumerate(poses):

@@ -297,6 +297,21 @@ class OdometryConfig(Section):
         return OdometryBuffer(model, stale_s=self.stale_s, max_extrapolation_s=self.max_extrapolation_s)
 
 
+class MapConfig(Section):
+    """A saved map (docs/map.md; the tracker only): loaded at start and at every reset, so a
+    pose comes in a mapped place without the cube; saved every ``save_every_min`` minutes
+    and at shutdown (atomically: a kill -9 loses only what came after the last save)."""
+
+    file: Path | None = Field(None, description="the map file; None: no map (the cube at every start)")
+    # false: localisation only: the file is read, never written (several robots sharing one map)
+    save: bool = True
+    save_every_min: float = Field(5.0, gt=0, le=1440)
+    keyframes: int = Field(400, ge=2, le=100_000, description="keyframes kept beyond the loaded ones (~17 kB each)")
+    # a map file that cannot be used (damaged, another calibration or target): fail = exit 2
+    # at start with one line; ignore = log it and start without a map (the next save replaces it)
+    on_error: Literal["fail", "ignore"] = "fail"
+
+
 class FoxgloveConfig(Section):
     """The Foxglove viewer (daemon/viewer.py): a WebSocket server the Foxglove app connects
     to; off unless ``listen`` is set. ``127.0.0.1:PORT`` admits clients on this machine only
@@ -345,6 +360,7 @@ class Config(Section):
     ros2: Ros2Config = Ros2Config()
     odometry: OdometryConfig = OdometryConfig()
     foxglove: FoxgloveConfig = FoxgloveConfig()
+    map: MapConfig = MapConfig()
     logging: LoggingConfig = LoggingConfig()
 
     @field_validator("name")

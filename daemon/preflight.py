@@ -31,6 +31,12 @@ class Prepared:
 def prepare(config: Config) -> Prepared:
     parse_source(config.camera.source)
     prepared = read_positioning_files(config)
+    if config.map.file is not None:
+        if config.positioning.mode != "tracker":
+            raise ConfigError('[map] file is for the tracker: positioning.mode = "target" has no map')
+        from daemon.map_store import MapStore
+
+        MapStore(config.map, prepared.calibration, prepared.target).check()
     build_zenoh_config(config.zenoh)
     # Build (not open) the camera last (the synthetic one takes a second): a bad source
     # argument (an unknown synthetic option, a replay without a directory) fails here; a
@@ -82,9 +88,15 @@ def make_processor(prepared: Prepared) -> FrameProcessor:
         max_reproj_rms_px=options.max_reproj_rms_px,
     )
     if options.mode == "tracker":
+        from dataclasses import replace
+
         from positioning.tracking import ProcessorOptions, TrackingProcessor
 
-        return TrackingProcessor(prepared.target, prepared.calibration, ProcessorOptions(pose=pose_options))
+        processor_options = ProcessorOptions(pose=pose_options)
+        if prepared.config.map.file is not None:  # a map to keep: more keyframes than the tracker's own 40
+            processor_options = replace(processor_options, tracker=replace(
+                processor_options.tracker, max_keyframes=prepared.config.map.keyframes))
+        return TrackingProcessor(prepared.target, prepared.calibration, processor_options)
     from positioning.single_frame import TargetPoseProcessor
 
     return TargetPoseProcessor(prepared.target, prepared.calibration, pose_options)

@@ -24,6 +24,7 @@ from daemon.cameras import make_camera
 from daemon.capture import CaptureThread
 from daemon.frame_queue import LatestFrameSlot
 from daemon.loop_stats import LoopStats
+from daemon.map_store import MapStore
 from daemon.messages import StatusReport, base_pose_message, status_message
 from daemon.odometry_in import OdometryInput
 from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
@@ -64,7 +65,9 @@ class Daemon:
         # wheel odometry in ([odometry]): filled from Zenoh, read by the tracker
         self.odometry = self.config.odometry.buffer() if self.config.odometry.enabled else None
         self._odometry_in: OdometryInput | None = None
-        self.processor = self._with_odometry(processor if processor is not None else make_processor(prepared))
+        self.map_store: MapStore | None = None
+        self.processor = self._with_map(self._with_odometry(
+            processor if processor is not None else make_processor(prepared)), prepared)
         self.stats = LoopStats()
         self.slot = LatestFrameSlot()
         camera = self.config.camera
@@ -105,7 +108,7 @@ class Daemon:
                 expected_size=self.prepared.calibration.size,
                 capture_stall_s=config.camera.frame_timeout_s + CAPTURE_STALL_MARGIN_S,
                 pose_sinks=self._pose_sinks(),
-                frame_sinks=(self._viewer.offer,) if self._viewer is not None else (),
+                frame_sinks=self._frame_sinks(),
             )
             self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset,
                                              base_pose=config.frames.enabled)
@@ -137,6 +140,26 @@ class Daemon:
         elif self.odometry is not None:
             log.warning("odometry is only used by the tracker (positioning.mode = \"tracker\")")
         return processor
+
+    def _with_map(self, processor: FrameProcessor, prepared: Prepared) -> FrameProcessor:
+        """The processor started from ``[map] file`` (loaded again at every reset)."""
+        if self.config.map.file is not None and hasattr(processor, "start_from_map"):
+            self.map_store = MapStore(self.config.map, prepared.calibration, prepared.target)
+            processor.start_from_map(self.map_store.load)
+        return processor
+
+    def _frame_sinks(self) -> tuple:
+        """What sees every processed frame: the Foxglove viewer, the map's periodic save."""
+        sinks = []
+        if self._viewer is not None:
+            sinks.append(self._viewer.offer)
+        if self.map_store is not None:
+            sinks.append(self._save_map_if_due)
+        return tuple(sinks)
+
+    def _save_map_if_due(self, item, result) -> None:
+        """A frame sink (the loop's thread, where the map does not change under the copy)."""
+        self.map_store.maybe_save(self._loop.processor.tracker.map)
 
     def _pose_sinks(self) -> tuple:
         """What each published pose also goes to: the base in the map on ``base_pose``
@@ -195,6 +218,8 @@ class Daemon:
             self._viewer.close()
         session.close()
         self.notifier.close()
+        if self.map_store is not None and self._loop is not None:  # the loop has ended: the map is still
+            self.map_store.save(self._loop.processor.tracker.map, wait=True)
         # Last, after everything others can see has closed: the tracker waits for a
         # bundle adjustment in flight (its worker thread would hold the exit anyway).
         close_processor = getattr(self.processor, "close", None)
@@ -239,7 +264,8 @@ class Daemon:
                    "lost_s": round(stats.lost_s, 2), "lost_now_s": round(stats.lost_now_s(), 2),
                    "held_frames": stats.held_frames, "reload": dict(self._reloads),
                    **({"odometry": self.odometry.report()} if self.odometry is not None else {}),
-                   **({"foxglove": self._viewer.report()} if self._viewer is not None else {})},
+                   **({"foxglove": self._viewer.report()} if self._viewer is not None else {}),
+                   **({"map": self.map_store.report()} if self.map_store is not None else {})},
         )
 
     # -- reload (SIGHUP) -------------------------------------------------------------------
@@ -250,7 +276,7 @@ class Daemon:
         config = self.config.positioning
         try:
             prepared = read_positioning_files(self.config)
-            processor = self._with_odometry(make_processor(prepared))
+            processor = self._with_map(self._with_odometry(make_processor(prepared)), prepared)
         except CubelocError as exc:
             self._reloads["failed"] += 1
             self._reloads["last"] = {"ok": False, "stamp_ns": time.time_ns(), "detail": str(exc)}

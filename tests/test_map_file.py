@@ -184,7 +184,7 @@ def _start(world_map_path: Path, room, seed: int, times_s) -> list:
     from the saved map: (truth, result) per frame."""
     calibration, cube = half_resolution(), make_cube()
     processor = TrackingProcessor(cube, calibration)
-    processor.start_from_map(load_map(world_map_path, calibration, cube)[0])
+    processor.start_from_map(lambda: load_map(world_map_path, calibration, cube)[0])
     out = []
     try:
         for k, truth in enumerate(trajectory_at("orbit", np.asarray(times_s), 6.0)):
@@ -216,3 +216,83 @@ def test_without_the_cube_a_mapped_place_gives_a_verified_pose_and_an_unmapped_o
     elsewhere = _start(work / "orbit.map", Room(seed=77), 700, times)
     assert all(r.estimate is None for _, r in elsewhere)
     assert {r.status for _, r in elsewhere} <= {"waiting", "verifying"}
+
+
+def _daemon(sequence: Path, map_file: Path, port: int, **map_section):
+    import threading
+
+    from daemon.config import Config
+    from daemon.preflight import prepare
+    from daemon.sdnotify import SystemdNotifier
+    from daemon.service import Daemon
+
+    config = Config.model_validate({
+        "name": "maptest",
+        "camera": {"source": f"replay:{sequence}@pace", "width": 640, "height": 512},
+        "positioning": {"calibration": sequence / "camera.yaml", "target": sequence / "target.yaml"},
+        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"]},
+        "daemon": {"status_period_s": 0.25},
+        "map": {"file": map_file, **map_section},
+    })
+    daemon = Daemon(prepare(config), threading.Event(), notifier=SystemdNotifier({}))
+    outcome: dict = {}
+    thread = threading.Thread(target=lambda: outcome.setdefault("code", daemon.run()), daemon=True)
+    return daemon, thread, outcome
+
+
+def test_the_daemon_saves_its_map_and_boots_on_it_without_the_cube(mapped, tmp_path, listeners):
+    from helpers import free_port, wait_until
+
+    from drivers.sequence import SequenceWriter
+    from positioning.tracking.map_file import read_header
+
+    _, orbit = mapped
+    map_file = tmp_path / "robot.map"
+    # first run: no map yet; the orbit (the cube in view) is mapped and saved at shutdown
+    daemon, thread, outcome = _daemon(orbit, map_file, free_port())
+    thread.start()
+    thread.join(120)
+    assert outcome.get("code") == 0 and map_file.is_file()
+    assert daemon.report().extra["map"]["saves"] == 1 and read_header(map_file)["keyframes"] >= 5
+    # second run: frames where the first ran, every tag painted over; localisation only
+    boot = tmp_path / "boot"
+    calibration, cube = half_resolution(), make_cube()
+    truths = trajectory_at("orbit", 3.0 + np.arange(15) * 0.1, 6.0)
+    with SequenceWriter(boot) as writer:
+        for k, truth in enumerate(truths):
+            writer.write(10**18 + k * 10**8, render_view(truth, calibration=calibration, seed=900 + k,
+                                                         hidden_tags=cube.ids))
+    for name in ("camera.yaml", "target.yaml"):
+        (boot / name).write_text((orbit / name).read_text())
+    saved = map_file.stat().st_mtime_ns
+    port = free_port()
+    daemon, thread, outcome = _daemon(boot, map_file, port, save=False)
+    listener = listeners(port)
+    thread.start()
+    assert wait_until(lambda: not thread.is_alive(), 60) and outcome.get("code") == 0
+    assert listener.poses, [s["state"] for s in listener.status]
+    first = listener.poses[0]
+    assert first["state"] == "relocalised" and first["planes"] == 0
+    for pose in listener.poses:
+        truth = truths[(pose["stamp_ns"] - 10**18) // 10**8]
+        assert np.linalg.norm(np.array(pose["position"]) - truth.translation) < 0.03
+    states = {s["state"] for s in listener.status}
+    assert states & {"waiting", "verifying"}, states  # said on status before the first pose
+    assert map_file.stat().st_mtime_ns == saved  # localisation only: the file is never written
+    assert daemon.report().extra["map"]["loads"] == 1
+
+
+def test_a_map_the_daemon_cannot_use_stops_it_at_start_unless_ignored(mapped, tmp_path, cli):
+    _, orbit = mapped
+    bad = tmp_path / "bad.map"
+    bad.write_bytes(b"\x00" * 1000)
+    config = tmp_path / "cubeloc.toml"
+    body = (f'name = "maptest"\n[camera]\nsource = "replay:{orbit}"\nwidth = 640\nheight = 512\n'
+            f'[positioning]\ncalibration = "{orbit / "camera.yaml"}"\ntarget = "{orbit / "target.yaml"}"\n'
+            f'[map]\nfile = "{bad}"\n')
+    config.write_text(body)
+    refused = cli("run", "--config", str(config), "--check")
+    assert refused.returncode == 2 and "not a cubeloc map" in refused.stderr and "on_error" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    config.write_text(body + 'on_error = "ignore"\n')
+    assert cli("run", "--config", str(config), "--check").returncode == 0

@@ -103,8 +103,8 @@ def run(args) -> int:
     if args.map:
         from positioning.tracking.map_file import load_map
 
-        world_map, _ = load_map(Path(args.map), calibration, target)
-        processor.start_from_map(world_map)
+        world_map, _ = load_map(Path(args.map), calibration, target)  # a bad file stops here, with one line
+        processor.start_from_map(lambda: world_map)
     odometry = _odometry(args, config, processor) if args.odometry else None
     recording = None
     if args.mcap:

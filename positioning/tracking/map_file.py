@@ -73,6 +73,21 @@ def _offsets(parts: list[np.ndarray]) -> np.ndarray:
 def save_map(path: Path, world_map: Map, calibration: CameraCalibration, target: Target) -> dict:
     """Write ``world_map`` to ``path`` atomically (the old file stays until the new one is
     complete, also through a kill -9); returns the header written."""
+    arrays = map_arrays(world_map, calibration, target)
+    write_map(path, arrays)
+    return json.loads(bytes(arrays["header"]))
+
+
+def write_map(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """The arrays of ``map_arrays`` to ``path``, atomically (compressing takes most of it:
+    the daemon does it outside the frame loop)."""
+    with atomic_open(path, "wb") as handle:
+        np.savez_compressed(handle, **arrays)
+
+
+def map_arrays(world_map: Map, calibration: CameraCalibration, target: Target) -> dict[str, np.ndarray]:
+    """A copy of ``world_map`` as the file's arrays (taken where the map is not changing:
+    the frame loop's thread)."""
     keyframes = list(world_map.keyframes.values())
     point_ids = np.fromiter(world_map.points, np.int64, len(world_map.points))
     header = {
@@ -99,9 +114,7 @@ def save_map(path: Path, world_map: Map, calibration: CameraCalibration, target:
         "desc_ids": np.concatenate([kf.descriptor_ids for kf in keyframes] + [np.zeros(0, np.int64)]),
         "desc": np.concatenate([kf.descriptors for kf in keyframes] + [np.zeros((0, 32), np.uint8)]),
     }
-    with atomic_open(path, "wb") as handle:
-        np.savez_compressed(handle, **arrays)
-    return header
+    return arrays
 
 
 def read_header(path: Path) -> dict:

@@ -16,6 +16,7 @@ no estimate with status ``initialising`` or ``lost``.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,7 @@ from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
 from positioning.target_pose import PoseOptions
 from positioning.tracking.features import KltFrontEnd
+from positioning.tracking.map import Map
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.relocalise import Relocaliser
 from positioning.tracking.tracker import Tracker
@@ -68,18 +70,16 @@ class TrackingProcessor:
         self._lost_frames = 0
         self._booting = False  # started from a saved map, nothing published yet
         self._agreeing = 0  # frames tracked in a row since the boot relocalisation
+        self._map_source: Callable[[], Map | None] | None = None
 
-    def start_from_map(self, world_map) -> None:
-        """Track on ``world_map`` (a ``map.Map`` loaded from a file, positioning/tracking/
-        map_file.py) from the next frame: relocalise against its keyframes until a place
-        is found, verified over ``boot_verify_frames``, or the cube is seen."""
+    def start_from_map(self, load: Callable[[], Map | None]) -> None:
+        """From the next frame, and after every ``reset``, track on the map ``load()``
+        gives (a ``map.Map`` read from a file, positioning/tracking/map_file.py): relocalise
+        against its keyframes until a place is found, verified over
+        ``boot_verify_frames``, or the cube is seen. A map with no keyframe (or None) is
+        no map: the tracker initialises on the cube as without one."""
+        self._map_source = load
         self.reset()
-        self.tracker.map = world_map
-        self.tracker.initialised, self.tracker.lost = True, True
-        ids = [max(world_map.points, default=-1)] + [int(kf.track_ids.max()) for kf in world_map.keyframes.values()
-                                                     if len(kf.track_ids)]
-        self.front_end.ids_from(max(ids) + 1)
-        self._booting, self._agreeing = True, 0
 
     def reset(self) -> None:
         self.tracker.reset()
@@ -89,6 +89,14 @@ class TrackingProcessor:
         self._lost_frames = 0
         self._booting, self._agreeing = False, 0
         self.observer.reset()
+        world_map = self._map_source() if self._map_source is not None else None
+        if world_map is not None and world_map.keyframes:
+            self.tracker.map = world_map
+            self.tracker.initialised, self.tracker.lost = True, True
+            ids = [max(world_map.points, default=-1)] + [int(kf.track_ids.max())
+                                                         for kf in world_map.keyframes.values() if len(kf.track_ids)]
+            self.front_end.ids_from(max(ids) + 1)
+            self._booting = True
 
     def close(self) -> None:
         self.tracker.close()
