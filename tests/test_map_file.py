@@ -259,6 +259,10 @@ def test_the_daemon_saves_its_map_and_boots_on_it_without_the_cube(mapped, tmp_p
     calibration, cube = half_resolution(), make_cube()
     truths = trajectory_at("orbit", 3.0 + np.arange(15) * 0.1, 6.0)
     with SequenceWriter(boot) as writer:
+        # first 1 s of a lens cap (nothing to see: "waiting"), while the listener's Zenoh link
+        # comes up: the first pose must not go out before anyone can hear it
+        for k in range(10):
+            writer.write(10**18 - (10 - k) * 10**8, np.full((512, 640), 40, np.uint8))
         for k, truth in enumerate(truths):
             writer.write(10**18 + k * 10**8, render_view(truth, calibration=calibration, seed=900 + k,
                                                          hidden_tags=cube.ids))

@@ -162,3 +162,4 @@ class TrackerOptions:
     reloc_ratio: float = 0.8  # Lowe's ratio test on Hamming distances
     reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
     reloc_max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused
+    reloc_boot_iterations: int = 10_000  # RANSAC samples at boot on a saved map (relocalise.py)

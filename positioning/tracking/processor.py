@@ -206,7 +206,7 @@ class TrackingProcessor:
                                       tracks.pixels)
 
     def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult) -> FrameResult:
-        found = self.relocaliser.relocalise(image, self.tracker.map)
+        found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting)
         if found is None:
             return lost
         self.front_end.adopt(found.point_ids, found.pixels)
