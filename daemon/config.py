@@ -306,7 +306,7 @@ class MapConfig(Section):
     # false: localisation only: the file is read, never written (several robots sharing one map)
     save: bool = True
     save_every_min: float = Field(5.0, gt=0, le=1440)
-    keyframes: int = Field(400, ge=2, le=100_000, description="keyframes kept beyond the loaded ones (~17 kB each)")
+    keyframes: int = Field(400, ge=2, le=100_000, description="the most keyframes the map file holds: thinned where dense at each save (~17 kB each)")
     # a map file that cannot be used (damaged, another calibration or target): fail = exit 2
     # at start with one line; ignore = log it and start without a map (the next save replaces it)
     on_error: Literal["fail", "ignore"] = "fail"

@@ -3,7 +3,9 @@
 Loaded at start (checked by ``cubeloc run``'s preflight: a file that cannot be used is
 exit 2 with one line, or with ``on_error = "ignore"`` a warning and no map) and again at
 every ``reset``; the tracker relocalises in it (``TrackingProcessor.start_from_map``).
-Saved every ``save_every_min`` minutes and at shutdown: the copy is taken in the frame
+Saved every ``save_every_min`` minutes and at shutdown, thinned first to ``keyframes`` (where
+the map is dense it loses keyframes, the 10 newest stay: ``Map.thin``), so the file and the
+memory stay bounded across runs: the copy is taken in the frame
 loop's thread, where the map does not change under it, and compressed and written
 atomically in a thread of its own, so the loop does not wait for the disk. With ``save =
 false`` the file is only read. A map with fewer than 2 keyframes is not saved (a daemon
@@ -26,6 +28,7 @@ from positioning.tracking.map import Map
 log = structlog.get_logger()
 
 MIN_KEYFRAMES_TO_SAVE = 2
+KEEP_NEWEST = 10  # keyframes a thinning never drops: those tracking and bundle adjustment use
 
 
 class MapStore:
@@ -65,13 +68,15 @@ class MapStore:
             log.info("map loaded", map=str(self.path), keyframes=header["keyframes"], points=header["points"])
         return world_map
 
-    def maybe_save(self, world_map: Map) -> None:
+    def maybe_save(self, world_map: Map, live_track_ids: set[int]) -> None:
         """From the frame loop: a copy of the map written in the background when one is due."""
         if time.monotonic() >= self._next_save:
             self._next_save = time.monotonic() + 60.0 * self.config.save_every_min
-            self.save(world_map, wait=False)
+            self.save(world_map, wait=False, live_track_ids=live_track_ids)
 
-    def save(self, world_map: Map, wait: bool) -> None:
+    def save(self, world_map: Map, wait: bool, live_track_ids: set[int] = frozenset()) -> None:
+        """Thinned to ``keyframes`` (points the live tracks follow are kept), copied, and
+        written in a thread (``wait``: until it is on disk)."""
         from positioning.tracking.map_file import map_arrays, write_map
 
         if not self.config.save or len(world_map.keyframes) < MIN_KEYFRAMES_TO_SAVE:
@@ -80,6 +85,8 @@ class MapStore:
             if not wait:
                 return  # the last one is still being written: the next period takes this
             self._writer.join()
+        # the file's budget: where the map is dense it loses keyframes, the newest stay
+        world_map.thin(self.config.keyframes, KEEP_NEWEST, set(live_track_ids))
         arrays = map_arrays(world_map, self.calibration, self.target)
         self._writer = threading.Thread(target=self._write, args=(write_map, arrays), name="map-save", daemon=True)
         self._writer.start()

@@ -159,7 +159,8 @@ class Daemon:
 
     def _save_map_if_due(self, item, result) -> None:
         """A frame sink (the loop's thread, where the map does not change under the copy)."""
-        self.map_store.maybe_save(self._loop.processor.tracker.map)
+        processor = self._loop.processor
+        self.map_store.maybe_save(processor.tracker.map, {int(t) for t in processor.front_end.ids})
 
     def _pose_sinks(self) -> tuple:
         """What each published pose also goes to: the base in the map on ``base_pose``

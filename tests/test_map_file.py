@@ -300,3 +300,19 @@ def test_a_map_the_daemon_cannot_use_stops_it_at_start_unless_ignored(mapped, tm
     assert len(refused.stderr.strip().splitlines()) == 1
     config.write_text(body + 'on_error = "ignore"\n')
     assert cli("run", "--config", str(config), "--check").returncode == 0
+
+
+def test_thinning_keeps_the_newest_and_the_widest_spread_and_drops_what_nobody_sees():
+    world_map = Map()
+    # 30 keyframes crowded within 10 cm at the origin, then 5 spread 1 m apart along x
+    positions = [np.array([0.003 * k, 0.0, 0.0]) for k in range(30)] + [np.array([1.0 + k, 0.0, 0.0])
+                                                                         for k in range(5)]
+    for k, position in enumerate(positions):
+        world_map.add_point(k, position + [0, 0, 3], k)
+        world_map.add_keyframe(k, Transform(np.eye(3), position), np.array([k]), np.zeros((1, 2)))
+    world_map.thin(10, 2, live_track_ids={0})
+    kept = sorted(world_map.keyframes)
+    assert len(kept) == 10 and {33, 34} <= set(kept)  # the newest two
+    assert {30, 31, 32} <= set(kept)  # the thinly mapped stretch keeps every keyframe
+    assert len([k for k in kept if k < 30]) == 5  # the crowded one gives up 25 of 30
+    assert set(world_map.points) == set(kept) | {0}  # and their points; a live track's stays

@@ -62,8 +62,6 @@ def run(args) -> int:
 
 
 def _prune(args) -> int:
-    import numpy as np
-
     from calib.camera_info import read_camera_info
     from cubeloc.errors import InputFileError
     from positioning.target import load_target
@@ -76,21 +74,8 @@ def _prune(args) -> int:
         raise InputFileError(f"{out}: the directory {out.parent} does not exist")
     calibration, target = read_camera_info(args.calib), load_target(args.target)
     world_map, _ = load_map(Path(args.map), calibration, target)
-    keyframes = list(world_map.keyframes.values())
-    before = (len(keyframes), len(world_map.points))
-    if len(keyframes) > args.keyframes:
-        positions = np.array([kf.T_world_camera.translation for kf in keyframes])
-        chosen = [0]  # farthest-point sampling: each next keyframe the farthest from those kept
-        distance = np.linalg.norm(positions - positions[0], axis=1)
-        while len(chosen) < args.keyframes:
-            chosen.append(int(np.argmax(distance)))
-            distance = np.minimum(distance, np.linalg.norm(positions - positions[chosen[-1]], axis=1))
-        keep = {keyframes[i].kf_id for i in chosen}
-        for kf in keyframes:
-            if kf.kf_id not in keep:
-                del world_map.keyframes[kf.kf_id]
-        world_map.fixed = set()
-        world_map.cull(args.keyframes, set())
+    before = (len(world_map.keyframes), len(world_map.points))
+    world_map.thin(args.keyframes, 0, set())
     save_map(out, world_map, calibration, target)
     print(f"{before[0]} keyframes, {before[1]} points -> {len(world_map.keyframes)} keyframes, "
           f"{len(world_map.points)} points in {out}")

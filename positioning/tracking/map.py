@@ -155,6 +155,33 @@ class Map:
         built = [k for k in self.keyframes if k not in self.fixed]
         for kf_id in built[: max(0, len(built) - max_keyframes)]:
             del self.keyframes[kf_id]
+        self._drop_unheld(live_track_ids)
+
+    def thin(self, max_keyframes: int, keep_newest: int, live_track_ids: set[int]) -> None:
+        """Keep ``max_keyframes`` keyframes: the ``keep_newest`` newest (the ones tracking
+        and bundle adjustment are working with) and, of the others, those spread widest
+        over the area (farthest-point sampling of their positions: where the map is dense
+        it loses keyframes, where it is thin it keeps them); then the points nobody holds."""
+        keyframes = list(self.keyframes.values())
+        if len(keyframes) <= max_keyframes:
+            return
+        newest = keyframes[len(keyframes) - min(keep_newest, max_keyframes):] if keep_newest else []
+        kept = {kf.kf_id for kf in newest}
+        rest = [kf for kf in keyframes if kf.kf_id not in kept]
+        positions = np.array([kf.T_world_camera.translation for kf in rest])
+        reference = np.array([kf.T_world_camera.translation for kf in newest] or [positions[0]])
+        distance = np.min(np.linalg.norm(positions[:, None] - reference[None], axis=2), axis=1)
+        while len(kept) < max_keyframes:
+            chosen = int(np.argmax(distance))
+            kept.add(rest[chosen].kf_id)
+            distance = np.minimum(distance, np.linalg.norm(positions - positions[chosen], axis=1))
+            distance[chosen] = -1.0
+        for kf in keyframes:
+            if kf.kf_id not in kept:
+                del self.keyframes[kf.kf_id]
+        self._drop_unheld(live_track_ids)
+
+    def _drop_unheld(self, live_track_ids: set[int]) -> None:
         if not self.points:
             return
         ids = np.fromiter(self.points.keys(), np.int64, len(self.points))
