@@ -80,19 +80,26 @@ class ProcessingLoop:
         self._swap: tuple[FrameProcessor, tuple[int, int]] | None = None
 
     # -- a reload: another processor, from a reload thread ---------------------------------
-    def swap_processor(self, processor: FrameProcessor, expected_size: tuple[int, int]) -> None:
+    def swap_processor(self, processor: FrameProcessor, expected_size: tuple[int, int],
+                       handover: Callable[[FrameProcessor, FrameProcessor], None] | None = None) -> None:
         """From the next frame on, ``processor`` (for images of ``expected_size``) instead
-        of the current one, which is then closed: no frame sees half of each."""
+        of the current one, which is then closed: no frame sees half of each. ``handover(old,
+        new)`` runs in the loop's thread just before (the tracker's map saved for the new one)."""
         with self._swap_lock:
-            self._swap = (processor, expected_size)
+            self._swap = (processor, expected_size, handover)
 
     def _swap_if_requested(self) -> None:
         with self._swap_lock:
             swap, self._swap = self._swap, None
         if swap is None:
             return
-        old, (self._processor, self._expected_size) = self._processor, swap
+        old, (self._processor, self._expected_size, handover) = self._processor, swap
         self._size_warned = False
+        if handover is not None:
+            try:
+                handover(old, self._processor)
+            except Exception:  # noqa: BLE001 - the new processor goes on as it was made
+                log.exception("handover to the reloaded processor failed")
         close = getattr(old, "close", None)
         if close is not None:
             close()

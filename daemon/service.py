@@ -275,6 +275,7 @@ class Daemon:
             return
         self.reload.clear()
         config = self.config.positioning
+        old_store, old_prepared = self.map_store, self.prepared
         try:
             prepared = read_positioning_files(self.config)
             processor = self._with_map(self._with_odometry(make_processor(prepared)), prepared)
@@ -284,7 +285,8 @@ class Daemon:
             log.error("reload refused: the files in use stay", error=str(exc), calibration=str(config.calibration),
                       target=str(config.target))
             return
-        self._loop.swap_processor(processor, prepared.calibration.size)
+        self._loop.swap_processor(processor, prepared.calibration.size,
+                                  self._map_handover(old_store, old_prepared, prepared))
         self.processor, self.prepared = processor, prepared
         self._publisher.calibration_yaml = prepared.calibration_yaml
         if self._ros2 is not None:
@@ -296,6 +298,24 @@ class Daemon:
                                  "detail": f"calibration {config.calibration}, target {config.target}"}
         log.info("reloaded", calibration=str(config.calibration), target=str(config.target),
                  size=f"{prepared.calibration.width}x{prepared.calibration.height}")
+
+    def _map_handover(self, old_store: MapStore | None, old: Prepared, new: Prepared):
+        """At a reload that keeps the calibration and the target: the map in memory saved
+        (in the loop's thread, at the swap) and the new processor started from that file,
+        so a reload loses nothing of the map since the last save. None otherwise: another
+        calibration or target starts from what the file has (or, refused, without it)."""
+        from positioning.tracking.map_file import calibration_fingerprint, target_fingerprint
+
+        if old_store is None or self.map_store is None or not self.config.map.save:
+            return None
+        if (calibration_fingerprint(old.calibration), target_fingerprint(old.target)) != (
+                calibration_fingerprint(new.calibration), target_fingerprint(new.target)):
+            return None
+
+        def handover(before, after) -> None:
+            old_store.save(before.tracker.map, wait=True, live_track_ids={int(t) for t in before.front_end.ids})
+            after.reset()
+        return handover
 
     def _only_bad_frames(self, last_fault_at: float) -> bool:
         """Frames dropped at the camera boundary lately, and none passed on for a while

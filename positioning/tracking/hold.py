@@ -144,6 +144,12 @@ class Drift:
         agreement = float(np.sqrt(np.mean(np.square(self._agreement)))) if self._agreement else 0.0
         self.floor_m = max(self.options.drift_floor_m, agreement)
 
+    @property
+    def grown_m(self) -> float:
+        """How much the position's standard deviation has grown since the target: the
+        measure of drift ``Map.correct`` spreads a correction by."""
+        return self.options.drift_per_m * self.path_m + self.options.drift_m_per_rad * self.turned_rad
+
     def relocalised(self, covariance: np.ndarray | None) -> None:
         """A relocalisation against keyframes: the map is built on from its pose, so its
         uncertainty stays in every pose after it until the target returns."""
@@ -162,7 +168,7 @@ class Drift:
         if measured is None:
             return None
         o = self.options
-        position_sigma = self.floor_m + o.drift_per_m * self.path_m + o.drift_m_per_rad * self.turned_rad
+        position_sigma = self.floor_m + self.grown_m
         rotation_sigma = o.drift_rad_per_m * self.path_m + o.drift_rad_per_rad * self.turned_rad
         total = np.array(measured, dtype=np.float64, copy=True)
         total[:3, :3] += np.eye(3) * position_sigma**2

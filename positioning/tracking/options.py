@@ -163,3 +163,14 @@ class TrackerOptions:
     reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
     reloc_max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused
     reloc_boot_iterations: int = 10_000  # RANSAC samples at boot on a saved map (relocalise.py)
+    min_reference_points: int = 30  # a loaded map's points in view that give the pose alone (Tracker._pnp)
+    # a loaded map's points found again at every keyframe (Relocaliser.refind)
+    refind: bool = True
+    refind_radius_px: float = 10.0
+    refind_max_hamming: int = 60  # of 256 bits
+    refind_max_angle_deg: float = 30.0  # between the view now and the describing keyframe's
+    refind_max_scale: float = 1.5  # distance now against the describing keyframe's, either way
+    # a loaded point found in at most retire_max_found of the last retire_after_visible
+    # keyframes that should have seen it is retired (Map.retire)
+    retire_after_visible: int = 10
+    retire_max_found: int = 1

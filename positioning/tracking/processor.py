@@ -201,6 +201,13 @@ class TrackingProcessor:
         new = self.front_end.detect(image, self._target_outline(pose))
         self.tracker.add_tracks(new)
         if out.keyframe and self.tracker.map.last_keyframe is not None:
+            if self.tracker.map.fixed and result.estimate is not None and self.options.tracker.refind:
+                # on a loaded map: its points found again, and those not found where they should be retired
+                again = self.relocaliser.refind(image, self.tracker.map, result.estimate.T_world_camera,
+                                                self.front_end.ids)
+                self.front_end.adopt(again.ids, again.pixels)
+                self.tracker.add_tracks(Tracks(again.ids, again.pixels))
+                self.tracker.map.retire(again.visible, again.found, self.options.tracker)
             tracks = self.front_end.tracks
             self.relocaliser.describe(image, self.tracker.map.last_keyframe, self.tracker.map, tracks.ids,
                                       tracks.pixels)

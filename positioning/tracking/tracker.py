@@ -79,16 +79,14 @@ class Tracker:
         self._drain_bundle()
         self.map = Map()
         self.initialiser = Initialiser(self.options.init, self.fx)
-        self.initialised = False
-        self.lost = False
+        self.initialised, self.lost = False, False
         self._last: Transform | None = None  # pose of the last frame with one
         self._last_stamp, self._last_covariance = 0, None  # and its time stamp and covariance
         # camera motion per second (rotation vector, translation of T_last_next in the last camera's
         # frame): per second, as a live camera's frames come irregularly (the queue skips when behind)
         self._velocity: tuple[np.ndarray, np.ndarray] | None = None
         self._after_relocalisation = False  # the last pose came from relocalised()
-        self._frame_tracks = Tracks.empty()
-        self._frame_xn = np.zeros((0, 2))
+        self._frame_tracks, self._frame_xn = Tracks.empty(), np.zeros((0, 2))
         self._frame_pose: Transform | None = None
         self._frame_target: TargetObservation | None = None
         self._frame_stamp = 0
@@ -140,12 +138,12 @@ class Tracker:
             before = tracked if tracked is not None else (None if self.lost else prediction)
             if self.lost:
                 state = PoseState.RELOCALISED
-            elif before is not None and not self._target_seen and self._jumped(before, pose):
-                # the map drifted while the target was away: move it back with the camera
-                self.map.correct(pose @ before.inverse())
-                state = PoseState.RELOCALISED
+            elif before is not None and not self._target_seen and (tracked is not None or self._jumped(before, pose)):
+                # the map drifted while the target was away: spread the correction along it
+                self.map.correct(pose @ before.inverse(), self._drift.grown_m)
                 log.debug("tracker.corrected", jump_m=float(np.linalg.norm(pose.translation - before.translation)))
-            elif tracked is not None and self.options.fuse_target_with_map:
+                state = PoseState.RELOCALISED if self._jumped(before, pose) else state
+            if tracked is not None and state is PoseState.TARGET and self.options.fuse_target_with_map:
                 pose = self._fuse(trusted, tracks, xn, pose)
             estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
                                     trusted.covariance)
@@ -227,7 +225,7 @@ class Tracker:
         self._frame_pose, self._frame_stamp = pose, stamp_ns
         self._frame_tracks, self._frame_xn = tracks, undistort(tracks.pixels, self.calibration)
         self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
-        self._frame_keyframe.position_sigma_m = _sigma(match)
+        self._frame_keyframe.position_sigma_m, self._frame_keyframe.drift_m = _sigma(match), self._drift.grown_m
         self._frames_since_keyframe, self._kf_points_at_insert = 0, len(tracks.ids)
         return covariance
 
@@ -368,6 +366,8 @@ class Tracker:
         6x6 covariance from the inliers' reprojection errors)."""
         o = self.options
         has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
+        reference = has & self.map.is_reference(tracks.ids)  # a loaded map's: they alone when enough
+        has = reference if reference.sum() >= o.min_reference_points else has
         ids = tracks.ids[has]
         if len(ids) < o.min_pnp_inliers:
             return None, len(ids), np.zeros(0, np.int64), 0.0, None
@@ -448,7 +448,7 @@ class Tracker:
         target_world = anchor.corners_world if anchor is not None else None
         target_xn = undistort(anchor.corners_px, self.calibration) if anchor is not None else None
         kf = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn, target_world, target_xn)
-        kf.position_sigma_m = self._frame_sigma
+        kf.position_sigma_m, kf.drift_m = self._frame_sigma, self._drift.grown_m
         self._frame_keyframe = kf
         self._frames_since_keyframe = 0
         self.map.triangulate(kf, self.fx, o.triangulation_starving_parallax_deg
