@@ -222,14 +222,14 @@ def test_without_the_cube_a_mapped_place_gives_a_verified_pose_and_an_unmapped_o
     assert {r.status for _, r in elsewhere} <= {"waiting", "verifying"}
 
 
-def _refound(world_map: Map, room, truth: Transform, chances: int, relocaliser: Relocaliser) -> set[int]:
-    """``chances`` renders of one view of ``room`` (tags painted over), each searched for the
-    map's points where ``truth`` puts them and counted for retirement: the points retired."""
+def _refound(world_map: Map, room, views: list[Transform], relocaliser: Relocaliser) -> set[int]:
+    """A render of each view of ``room`` (tags painted over), searched for the map's points
+    where the view puts them and counted for retirement: the points retired."""
     calibration, before = half_resolution(), set(world_map.points)
-    for chance in range(chances):
-        image = render_view(truth, calibration=calibration, room=room, seed=10 + chance, hidden_tags=make_cube().ids)
-        again = relocaliser.refind(image, world_map, truth, np.zeros(0, np.int64))
-        world_map.retire(again.visible, again.found, relocaliser.options)
+    for chance, view in enumerate(views):
+        image = render_view(view, calibration=calibration, room=room, seed=10 + chance, hidden_tags=make_cube().ids)
+        again = relocaliser.refind(image, world_map, view, np.zeros(0, np.int64))
+        world_map.retire(again.visible, again.found, view.translation, relocaliser.options)
     return before - set(world_map.points)
 
 
@@ -249,26 +249,37 @@ def test_a_loaded_maps_points_are_found_again_where_the_pose_puts_them_and_retir
     # measured: 72 of 294 found (the cube's painted-over tags hold most of this map's
     # points), 1.9 px median from the true projection (half resolution), 8.2 px at most
     assert len(again.ids) >= 40 and np.median(errors) < 3.0 and errors.max() <= TrackerOptions().refind_radius_px
-    assert set(again.found) == set(again.ids) and set(again.ids) <= set(again.visible)
+    assert set(again.found) <= set(again.visible) and set(again.ids) & set(again.visible) <= set(again.found)
     moved = truth @ Transform.from_rvec_tvec(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     assert len(relocaliser.refind(image, world_map, moved, np.zeros(0, np.int64)).ids) < len(again.ids) / 4  # 7
     tracked = again.ids[:10]  # followed already: found without a search
     held = relocaliser.refind(image, world_map, truth, tracked)
-    assert set(tracked) <= set(held.found) and not set(tracked) & set(held.ids)
-    # a 30 cm box 1.2 m in front of the camera, a little to the right
+    assert set(tracked) & set(held.visible) <= set(held.found) and not set(tracked) & set(held.ids)
+    # a 30 cm box 1.2 m in front of the camera, a little to the right; ten views 10 cm apart
+    # (from one place, one chance): the camera's first 10 cm steps round a 20 x 30 cm grid
     centre = truth.translation + 1.2 * truth.rotation[:, 2] + 0.25 * truth.rotation[:, 0]
     box = Box(tuple(centre), (0.3, 0.3, 0.3), 3)
-    clear = _refound(load_map(work / "orbit.map", calibration, cube)[0], True, truth, 10, relocaliser)
+    steps = [(0, 0), (1, 0), (2, 0), (2, 1), (1, 1), (0, 1), (0, 2), (1, 2), (2, 2), (2, 3)]
+    views = [truth @ Transform.from_rvec_tvec(np.zeros(3), np.array([0.12 * i - 0.12, 0.12 * j - 0.18, 0.0]))
+             for i, j in steps]
+    clear = _refound(load_map(work / "orbit.map", calibration, cube)[0], True, views, relocaliser)
     covered_map = load_map(work / "orbit.map", calibration, cube)[0]
-    covered = _refound(covered_map, Room(boxes=(box,)), truth, 10, relocaliser)
+    covered = _refound(covered_map, Room(boxes=(box,)), views, relocaliser)
     corners = centre + 0.15 * np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
-    outline = cv2.convexHull(project(truth.inverse().apply(corners), calibration).astype(np.float32))
-    behind = [cv2.pointPolygonTest(outline, tuple(float(v) for v in project(
-        truth.inverse().apply(covered_map_point[None]), calibration)[0]), True) >= -10.0
-        for covered_map_point in (world_map.points[i] for i in covered - clear)]
-    # measured: 16 more retired with the box, 15 of them behind it; 1 retired only without
+
+    def behind_in_most(point: np.ndarray) -> bool:
+        inside = [cv2.pointPolygonTest(cv2.convexHull(project(view.inverse().apply(corners), calibration)
+                                                      .astype(np.float32)),
+                                       tuple(float(v) for v in project(view.inverse().apply(point[None]),
+                                                                       calibration)[0]), True) >= -5.0
+                  for view in views]
+        return sum(inside) >= 5
+
+    behind = [behind_in_most(world_map.points[i]) for i in covered - clear]
+    # measured: 117 retired in the room as it was (the points of the painted-over tags),
+    # 125 with the box: 13 more, all behind it; 5 retired only in the room as it was
     assert len(behind) >= 8 and sum(behind) >= 0.8 * len(behind)
-    assert len(clear - covered) <= 3
+    assert len(clear - covered) <= 10
     assert covered_map.points_retired == len(covered)
 
 

@@ -76,6 +76,7 @@ class Map:
         self.fixed: set[int] = set()
         # a loaded point's last chances to be seen (True: it was), and how many were retired
         self.point_history: dict[int, collections.deque] = {}
+        self.point_chance_at: dict[int, np.ndarray] = {}  # where each one's last chance was taken
         self.points_retired = 0
 
     def __len__(self) -> int:
@@ -177,15 +178,21 @@ class Map:
             self.points[track_id] = share_of(shares.get(birth, oldest)).apply(self.points[track_id][None])[0]
         self.epoch += 1
 
-    def retire(self, visible: np.ndarray, found: np.ndarray, options) -> int:
-        """Count, for a loaded map's points, the keyframes that should have seen them
-        (``visible``) and those that did (``found``); retire (remove) a point seen in at
-        most ``retire_max_found`` of its last ``retire_after_visible`` chances (a thing
-        moved away or covered: the four boxes put into the mapped room of bench boot).
-        Returns how many went."""
+    def retire(self, visible: np.ndarray, found: np.ndarray, camera_position: np.ndarray, options) -> int:
+        """Count, for a loaded map's points, the chances to be seen (``visible`` from
+        ``camera_position``) and those taken (``found``); a point's chance counts only from
+        at least ``retire_min_move_m`` from where its last one was (one place seen again
+        and again tells nothing new: 20-30 % of the points that should be seen are not
+        matched from a given place, room unchanged). A point found in at most
+        ``retire_max_found`` of its last ``retire_after_visible`` chances is retired
+        (removed): a thing moved away or covered. Returns how many went."""
         found_set = {int(p) for p in found}
         gone = []
         for point_id in (int(p) for p in visible):
+            last = self.point_chance_at.get(point_id)
+            if last is not None and np.linalg.norm(camera_position - last) < options.retire_min_move_m:
+                continue
+            self.point_chance_at[point_id] = np.asarray(camera_position, np.float64).copy()
             history = self.point_history.setdefault(point_id, collections.deque(maxlen=options.retire_after_visible))
             history.append(point_id in found_set)
             if len(history) == history.maxlen and sum(history) <= options.retire_max_found:
@@ -193,6 +200,7 @@ class Map:
         for point_id in gone:
             self.remove_point(point_id)
             self.point_history.pop(point_id, None)
+            self.point_chance_at.pop(point_id, None)
         self.points_retired += len(gone)
         return len(gone)
 

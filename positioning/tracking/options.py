@@ -174,3 +174,4 @@ class TrackerOptions:
     # keyframes that should have seen it is retired (Map.retire)
     retire_after_visible: int = 10
     retire_max_found: int = 1
+    retire_min_move_m: float = 0.1  # between two chances of one point

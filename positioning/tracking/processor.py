@@ -207,7 +207,8 @@ class TrackingProcessor:
                                                 self.front_end.ids)
                 self.front_end.adopt(again.ids, again.pixels)
                 self.tracker.add_tracks(Tracks(again.ids, again.pixels))
-                self.tracker.map.retire(again.visible, again.found, self.options.tracker)
+                self.tracker.map.retire(again.visible, again.found, result.estimate.T_world_camera.translation,
+                                        self.options.tracker)
             tracks = self.front_end.tracks
             self.relocaliser.describe(image, self.tracker.map.last_keyframe, self.tracker.map, tracks.ids,
                                       tracks.pixels)
