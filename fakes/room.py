@@ -39,6 +39,8 @@ class Room:
     texel_m: float = 0.004
     seed: int = 0
     boxes: tuple[Box, ...] = ()
+    # walls (atlas order, below) given another texture, the others kept: a room changed in part
+    retextured: tuple[int, ...] = ()
 
     @property
     def lower(self) -> np.ndarray:
@@ -89,6 +91,8 @@ def room_atlas(room: Room) -> RoomAtlas:
         # floor darker and ceiling lighter, as lit rooms are
         mean = {4: 0.42, 5: 0.7}.get(wall, 0.55)
         texture = procedural_texture(h, w, rng, mean=mean)
+        if wall in room.retextured:  # drawn after the original, so the other walls stay as they were
+            texture = procedural_texture(h, w, np.random.default_rng([room.seed, 7, 100 + wall]), mean=mean)
         texture = np.pad(texture, ATLAS_PADDING, mode="edge")
         blocks.append(texture)
         # texel j covers [j, j + 1) * texel from the wall's lower corner; its centre is at
