@@ -173,3 +173,15 @@ def test_back_faces_are_not_drawn_and_nearer_surfaces_cover_farther():
 def test_camera_outside_the_room_is_refused():
     with pytest.raises(ValueError, match="outside the room"):
         render_view(look_at(np.array([9.0, 0.0, 1.0]), np.zeros(3)))
+
+
+def test_a_wall_retextured_changes_that_wall_and_no_other():
+    """Room(retextured=(3,)): the view of the wall at y = +4 m changes, one of the wall at
+    y = -4 m does not (bench boot's room changed in part)."""
+    pose_up = look_at(np.array([0.0, 1.0, 1.2]), np.array([0.0, 4.0, 1.2]), up=np.array([0.0, 0.0, 1.0]))
+    pose_down = look_at(np.array([0.0, -1.0, 1.2]), np.array([0.0, -4.0, 1.2]), up=np.array([0.0, 0.0, 1.0]))
+    changed = Room(retextured=(3,))
+    for pose, differs in ((pose_up, True), (pose_down, False)):
+        a = render_view(pose, room=True, seed=1, hidden_tags=make_cube().ids, noise_sigma=0.0)
+        b = render_view(pose, room=changed, seed=1, hidden_tags=make_cube().ids, noise_sigma=0.0)
+        assert bool(np.mean(np.abs(a.astype(int) - b.astype(int))) > 10) is differs
