@@ -170,8 +170,8 @@ class TrackerOptions:
     refind_max_hamming: int = 60  # of 256 bits
     refind_max_angle_deg: float = 30.0  # between the view now and the describing keyframe's
     refind_max_scale: float = 1.5  # distance now against the describing keyframe's, either way
-    # a loaded point found in at most retire_max_found of the last retire_after_visible
-    # keyframes that should have seen it is retired (Map.retire)
+    # a loaded point found in at most retire_max_found of its last retire_after_visible
+    # chances to be seen (keyframes, one per place retire_min_move_m apart) retires (Map.retire)
     retire_after_visible: int = 10
     retire_max_found: int = 1
     retire_min_move_m: float = 0.1  # between two chances of one point

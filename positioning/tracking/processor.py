@@ -6,7 +6,9 @@ pose says the target should be (and over the whole image every ``target_search_e
 frames while it is not found, so that it is found again even after drift); the tracker turns
 tracks and the target pose into this frame's pose; on keyframes new corners are detected
 and ORB descriptors stored; when lost, or held on rays (too few map points in view), the
-frame is matched against the keyframes every ``relocalise_every`` frames.
+frame is matched against the keyframes every ``relocalise_every`` frames. Started from a
+saved map (``start_from_map``), each keyframe also finds the map's own points again
+(``Relocaliser.refind``) and retires those no longer there (``Map.retire``).
 
 States: ``target`` (the target is in view and trusted), ``tracking`` (the map alone, or
 held: detail ``held: orientation from rays``), ``relocalised`` (a visible correction),
