@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from positioning.geometry import Transform
+from positioning.tracking.options import TrackerOptions
 from positioning.tracking.twoview import triangulate
 
 
@@ -178,7 +179,8 @@ class Map:
             self.points[track_id] = share_of(shares.get(birth, oldest)).apply(self.points[track_id][None])[0]
         self.epoch += 1
 
-    def retire(self, visible: np.ndarray, found: np.ndarray, camera_position: np.ndarray, options) -> int:
+    def retire(self, visible: np.ndarray, found: np.ndarray, camera_position: np.ndarray,
+               options: TrackerOptions) -> int:
         """Count, for a loaded map's points, the chances to be seen (``visible`` from
         ``camera_position``) and those taken (``found``); a point's chance counts only from
         at least ``retire_min_move_m`` from where its last one was (one place seen again

@@ -83,11 +83,12 @@ class Relocaliser:
         already is found. For the others: the corners within ``refind_radius_px`` of the
         projection, the nearest in Hamming distance to its descriptor found if within
         ``refind_max_hamming``, and followed if clearly nearer than the second (Lowe's
-        ratio) and claimed by no other point. ~15 ms a keyframe
-        at 1280x1024 (2000 corners described)."""
+        ratio) and claimed by no other point. ~15 ms a keyframe at 1280x1024 (2000
+        corners described)."""
         o = self.options
-        alive = np.fromiter((int(i) in world_map.points for i in self._reference(world_map)[0]), bool)  # not retired
-        ids, points, centres, descriptors = (a[alive] for a in self._reference(world_map))
+        reference = self._reference(world_map)
+        alive = np.fromiter((int(i) in world_map.points for i in reference[0]), bool)  # not retired
+        ids, points, centres, descriptors = (a[alive] for a in reference)
         none = Refound(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0, np.int64))
         if not len(ids):
             return none
@@ -108,11 +109,9 @@ class Relocaliser:
         none = Refound(none.ids, none.pixels, ids[visible], ids[visible & held])
         if not wanted.any():
             return none
-        corners = find_corners(image, o.orb_features, o.features, min_distance_px=6)
-        keypoints, found = self._describe(image, corners, np.arange(len(corners))) if len(corners) else ([], None)
-        if found is None or not keypoints:
+        at, found = self._frame_features(image)
+        if not len(at):
             return none
-        at = np.array([k.pt for k in keypoints])
         bits = np.unpackbits(found, axis=1)
         claims: dict[int, list[int]] = {}
         present = []  # a corner like it near: there (if not told apart from a neighbour)
@@ -153,6 +152,19 @@ class Relocaliser:
                 np.array([d for _, d in known.values()], dtype=np.uint8).reshape(-1, 32))
         return self._reference_arrays
 
+    def _frame_features(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's corners (K, 2) and their descriptors (K, 32), for matching against the
+        map: the same corners as the tracks (Shi-Tomasi), described upright (ORB's own FAST
+        keypoints land elsewhere and its orientation would not match the keyframes'), dense
+        (6 px apart: the greedy spacing of the tracker's own detection would pick a
+        different subset of corners in a different view)."""
+        o = self.options
+        corners = find_corners(image, o.orb_features, o.features, min_distance_px=6)
+        keypoints, descriptors = self._describe(image, corners, np.arange(len(corners))) if len(corners) else ([], None)
+        if descriptors is None or not keypoints:
+            return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
+        return np.array([k.pt for k in keypoints], dtype=np.float64), descriptors
+
     def _describe(self, image: np.ndarray, pixels: np.ndarray, tags: np.ndarray) -> tuple[list, np.ndarray | None]:
         """Upright ORB descriptors (angle 0, full resolution) at the given pixels; each
         keypoint's ``class_id`` is its tag (OpenCV drops keypoints too near the edge)."""
@@ -176,15 +188,8 @@ class Relocaliser:
             return None
         map_ids = np.array(list(known), dtype=np.int64)
         map_descriptors = np.array(list(known.values()), dtype=np.uint8)
-        # The same corners as the tracks (Shi-Tomasi), described upright: ORB's own FAST
-        # keypoints land elsewhere and its orientation would not match the keyframes'.
-        # dense (6 px apart): the greedy spacing of the tracker's own detection would pick
-        # a different subset of corners in a different view
-        corners = find_corners(image, o.orb_features, o.features, min_distance_px=6)
-        if len(corners) < o.reloc_min_inliers:
-            return None
-        keypoints, descriptors = self._describe(image, corners, np.arange(len(corners)))
-        if descriptors is None or len(keypoints) < o.reloc_min_inliers:
+        at, descriptors = self._frame_features(image)
+        if len(at) < o.reloc_min_inliers:
             return None
         pairs = self._matcher.knnMatch(descriptors, map_descriptors, k=2)
         best: dict[int, tuple[float, int]] = {}  # map index -> (distance, keypoint index)
@@ -197,7 +202,7 @@ class Relocaliser:
             return None
         train = np.array(list(best), dtype=np.int64)
         query = np.array([best[t][1] for t in train], dtype=np.int64)
-        pixels = np.array([keypoints[q].pt for q in query], dtype=np.float64)
+        pixels = at[query]
         ids = map_ids[train]
         obj = np.array([world_map.points[int(i)] for i in ids])
         xn = undistort(pixels, self.calibration)
