@@ -21,7 +21,7 @@ LOOPBACK := scripts/loopback-only
 TEST_WORKERS ?= 2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all install test lint bench demo soak clean
+.PHONY: all install test lint bench demo soak clean constraints
 
 all: test
 
@@ -39,8 +39,9 @@ $(BIN)/python: | $(STAMPS)/apt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-$(STAMPS)/install: pyproject.toml $(STAMPS)/apt | $(BIN)/python
-	$(BIN)/python -m pip install -q -e '.[test]'
+# constraints.txt: the versions the tests and benchmarks were measured with (see its header)
+$(STAMPS)/install: pyproject.toml constraints.txt $(STAMPS)/apt | $(BIN)/python
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
 	@touch $@
 
 install: $(STAMPS)/install
@@ -62,6 +63,17 @@ demo: install
 # fds, frame rate and every pose checked; writes docs/soak.md. Not part of `make test`.
 soak: install
 	$(LOOPBACK) nice $(BIN)/python -m bench.soak --minutes 30
+
+# Today's releases of everything pyproject.toml asks for, frozen into constraints.txt
+# (a scratch venv; .venv is left as it is until the next `make install`).
+constraints: | $(STAMPS)/apt
+	rm -rf $(STAMPS)/constraints-venv
+	$(PYTHON) -m venv $(STAMPS)/constraints-venv
+	$(STAMPS)/constraints-venv/bin/python -m pip install -q --upgrade pip
+	$(STAMPS)/constraints-venv/bin/python -m pip install -q -e '.[test]'
+	{ sed -n '/^#/p' constraints.txt; $(STAMPS)/constraints-venv/bin/python -m pip freeze --exclude-editable | sort -f; } > constraints.txt.new
+	mv constraints.txt.new constraints.txt
+	rm -rf $(STAMPS)/constraints-venv
 
 clean:
 	rm -rf $(STAMPS) $(VENV) .pytest_cache .ruff_cache

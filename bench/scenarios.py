@@ -58,12 +58,12 @@ _WRAPPER = (
 )
 
 
-def _render(root: Path, name: str) -> Path:
+def _render(root: Path, name: str, seed: int = 1) -> Path:
     from fakes.sequence import write_synthetic_sequence
 
-    out = root / name
+    out = root / (name if seed == 1 else f"{name}-seed{seed}")
     if not (out / "groundtruth.tum").is_file():
-        write_synthetic_sequence(out, name, seed=1)
+        write_synthetic_sequence(out, name, seed=seed)
     return out
 
 

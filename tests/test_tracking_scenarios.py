@@ -62,12 +62,19 @@ def tracking_score(results, truth):
 
 
 def test_a_brisk_turn_right_after_initialisation_keeps_the_map_round_the_room(tmp_path_factory):
-    """Measured at half resolution: 100 % of frames (the previous tracker: 13 %); the scale
-    drifts on the lap, which looks ahead along the motion (little parallax): RMS 9.7 and
-    15.3 mm, max 15 and 23 mm on seeds 11 and 2. Full resolution: 2.8 mm (bench)."""
+    """The scale drifts on the lap, which looks ahead along the motion (little parallax),
+    and by how much depends on the noise and the texture, so the bounds come from 16
+    renders, not from this one: noise seeds 2-8 and 11, the room's texture as OpenCV 5.0.0
+    and 5.1.0 draw it (anti-aliased shapes changed). In all 16: every frame with a pose;
+    RMS 5.8-30.8 mm (median 21.8), max 9.0-47.5 mm, the error up to 2.7 % of the distance
+    from the start; back on the cube 0.6-1.1 mm. This render (seed 11, constraints.txt's
+    OpenCV): RMS 7.6, max 11.2 mm. Full resolution, 6 renders: RMS 1.8-13.3 mm (bench seeds)."""
     score, results, truth = replay(tmp_path_factory, "turn_after_init", seconds=75.0)
     assert score.coverage >= 0.99, score
-    assert score.max_m < 0.030 and score.rmse_m < 0.015, score
+    assert score.max_m < 0.060 and score.rmse_m < 0.040, score
+    back = results[-1].estimate
+    assert back.state is PoseState.TARGET
+    assert np.linalg.norm(back.T_world_camera.translation - truth[-1].T_world_camera.translation) < 0.003
     tracked = tracking_score(results, truth)
     assert tracked.with_pose > 600 and tracked.consistent >= 0.97 and tracked.beyond_5_sigma == 0, tracked
     assert tracked.without_covariance == 0
