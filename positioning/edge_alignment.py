@@ -258,12 +258,15 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
 
 def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
                          calibration: CameraCalibration, max_shift_m: float = 0.05,
-                         iterations: int | None = None) -> TargetPose:
+                         iterations: int | None = None,
+                         sharp_corner_rms_px: float = SHARP_CORNER_RMS_PX) -> TargetPose:
     """``pose`` aligned to every cell edge of its tags (or unchanged when that fails or
     moves the camera further than ``max_shift_m``, which a right start never needs).
 
     The aligned pose's ``reproj_rms_px`` is the RMS of the edge profiles' offsets (pixels
-    along the edges' normals) it was fitted to; ``residuals_px`` stay the corners'."""
+    along the edges' normals) it was fitted to; ``residuals_px`` stay the corners'.
+    ``sharp_corner_rms_px``: the corners' RMS about the aligned pose on a sharp image of
+    this camera (more is taken for blur)."""
     if pose.rvec is None or pose.tvec is None:
         return pose
     try:
@@ -284,7 +287,7 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     # with the aligned pose. As far as they disagree beyond a sharp image's RMS, the
     # covariance is scaled (agile: 84 -> 98 % of the tracker's poses inside 3 sigma).
     corner_rms = float(np.sqrt(np.mean(residuals**2)))
-    covariance = fit.covariance() * max(1.0, corner_rms / SHARP_CORNER_RMS_PX) ** 2
+    covariance = fit.covariance() * max(1.0, corner_rms / max(sharp_corner_rms_px, SHARP_CORNER_RMS_PX)) ** 2
     return dataclasses.replace(
         pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=covariance,
         residuals_px=residuals, reproj_rms_px=float(np.sqrt(np.mean(fit.residuals_px**2))),

@@ -1,0 +1,31 @@
+"""Cameras other than the paper's, for checking that nothing is tuned to its lens: 640
+pixels wide (each is cheap to render and track), the cube's model and nothing else
+shared with it.
+
+=========  =============================================================================
+``wide``    640x512, f 450 px (HFOV 71 deg), strong barrel distortion (k1 -0.25, k2 0.08)
+``narrow``  640x512, f 1250 px (HFOV 29 deg), mild barrel (k1 -0.03)
+``vga``     640x480, f 600 px (HFOV 56 deg), principal point 11 px right and 8 px up of
+            the centre, barrel and a little tangential distortion
+=========  =============================================================================
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib.camera_info import CameraCalibration
+
+# name: (width, height, f px, principal point, plumb_bob distortion, what it stands for)
+LENSES: dict[str, tuple[int, int, float, tuple[float, float], tuple[float, ...], str]] = {
+    "wide": (640, 512, 450.0, (319.5, 255.5), (-0.25, 0.08, 0.0, 0.0, 0.0), "HFOV 71 deg, strong barrel"),
+    "narrow": (640, 512, 1250.0, (319.5, 255.5), (-0.03, 0.0, 0.0, 0.0, 0.0), "HFOV 29 deg"),
+    "vga": (640, 480, 600.0, (331.0, 247.0), (-0.12, 0.03, 0.001, -0.0005, 0.0), "HFOV 56 deg, centre off"),
+}
+
+
+def lens_calibration(name: str) -> CameraCalibration:
+    """The calibration of lens ``name`` (one of ``LENSES``)."""
+    width, height, f, (cx, cy), distortion, _ = LENSES[name]
+    k = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    return CameraCalibration(width, height, k, np.array(distortion), "plumb_bob", name)
