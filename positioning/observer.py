@@ -163,7 +163,8 @@ class TargetObserver:
     regions and resolves a single face; ``full_search`` False keeps to the predicted
     regions (the tracker, while the target should be out of view, searches the full frame
     only every few frames). State kept between calls: how many tags the last pose used,
-    which tags needed the masked search, whether the tag size was checked.
+    which tags needed the masked search, whether the tag size was checked, and what the
+    library's corners disagree with an aligned pose by on this camera's sharp images.
     """
 
     def __init__(self, target: Target, calibration: CameraCalibration, options: PoseOptions | None = None,
