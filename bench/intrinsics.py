@@ -33,11 +33,11 @@ SEED = 11
 def _run(root: Path, lens: str, scenario: str):
     from drivers.sequence import read_mono_png, read_sequence_index
     from fakes.sequence import write_synthetic_sequence
-    from positioning.evaluation import score_run
+    from positioning.evaluation import score_estimates
     from positioning.target import make_cube
     from positioning.tracking.options import BundleOptions
     from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-    from positioning.trajectory_io import StampedPose, read_tum
+    from positioning.trajectory_io import read_tum
 
     calibration = lens_calibration(lens)
     out = root / f"{lens}-{scenario}"
@@ -52,9 +52,7 @@ def _run(root: Path, lens: str, scenario: str):
                    for i, e in enumerate(read_sequence_index(out))]
     finally:
         processor.close()
-    return score_run(truth, [None if r.estimate is None else
-                             (StampedPose(t.stamp_ns, r.estimate.T_world_camera), r.estimate.covariance)
-                             for r, t in zip(results, truth, strict=True)])
+    return score_estimates(truth, [r.estimate for r in results])
 
 
 def run() -> str:

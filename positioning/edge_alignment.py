@@ -287,7 +287,7 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     # with the aligned pose. As far as they disagree beyond a sharp image's RMS, the
     # covariance is scaled (agile: 84 -> 98 % of the tracker's poses inside 3 sigma).
     corner_rms = float(np.sqrt(np.mean(residuals**2)))
-    covariance = fit.covariance() * max(1.0, corner_rms / max(sharp_corner_rms_px, SHARP_CORNER_RMS_PX)) ** 2
+    covariance = fit.covariance() * max(1.0, corner_rms / sharp_corner_rms_px) ** 2
     return dataclasses.replace(
         pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=covariance,
         residuals_px=residuals, reproj_rms_px=float(np.sqrt(np.mean(fit.residuals_px**2))),

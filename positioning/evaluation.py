@@ -277,3 +277,11 @@ def score_run(truth: list[StampedPose], poses: list[tuple[StampedPose, np.ndarra
         beyond_5_sigma=int(np.sum(nees_a > NEES_5_SIGMA)),
         without_covariance=without,
     )
+
+
+def score_estimates(truth: list[StampedPose], estimates: list) -> RunScore:
+    """``score_run`` for one pose estimate per frame (anything with ``T_world_camera`` and
+    ``covariance``, such as the tracker's ``PoseEstimate``; None for a frame without a
+    pose), each stamped as its frame's ground truth."""
+    return score_run(truth, [None if e is None else (StampedPose(t.stamp_ns, e.T_world_camera), e.covariance)
+                             for e, t in zip(estimates, truth, strict=True)])

@@ -392,9 +392,9 @@ class TargetObserver:
             aligned = refine_pose_on_edges(image, pose, self.target, self.calibration,
                                            sharp_corner_rms_px=self._sharp_corner_rms() if steady
                                            else SHARP_CORNER_RMS_PX)
-            if aligned is not pose and steady:
-                self._steady_corner_rms.append(float(np.sqrt(np.mean(aligned.residuals_px**2))))
             if aligned is not pose:  # else the alignment failed: the corners' pose stands
+                if steady:
+                    self._steady_corner_rms.append(float(np.sqrt(np.mean(aligned.residuals_px**2))))
                 pose = aligned
                 corners_px = project_pose(pose.points_world, pose.rvec, pose.tvec, self.calibration)
         if pose.covariance is None:  # computed once, for the pose returned (a weighted one has its own)

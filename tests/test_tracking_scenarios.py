@@ -20,11 +20,11 @@ from drivers.sequence import read_mono_png, read_sequence_index
 from fakes.lenses import lens_calibration
 from fakes.sequence import write_synthetic_sequence
 from positioning.estimator import PoseState
-from positioning.evaluation import score_run
+from positioning.evaluation import score_estimates
 from positioning.target import make_cube
 from positioning.tracking.options import BundleOptions
 from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-from positioning.trajectory_io import StampedPose, read_tum
+from positioning.trajectory_io import read_tum
 
 SYNC = ProcessorOptions()
 SYNC = replace(SYNC, tracker=replace(SYNC.tracker, bundle=BundleOptions(background=False)))
@@ -49,18 +49,13 @@ def replay(tmp_path_factory, name: str, seconds: float | None = None, seed: int 
 
 def score_results(results, truth):
     """The score of a run's results (one per frame) against the ground truth."""
-    entries = [None if r.estimate is None else (StampedPose(t.stamp_ns, r.estimate.T_world_camera),
-                                                r.estimate.covariance)
-               for r, t in zip(results, truth, strict=True)]
-    return score_run(truth, entries)
+    return score_estimates(truth, [r.estimate for r in results])
 
 
 def tracking_score(results, truth):
     """The score of the map's poses alone (the target's own single-frame poses left out)."""
-    entries = [None if r.estimate is None or r.estimate.state is PoseState.TARGET else
-               (StampedPose(t.stamp_ns, r.estimate.T_world_camera), r.estimate.covariance)
-               for r, t in zip(results, truth, strict=True)]
-    return score_run(truth, entries)
+    return score_estimates(truth, [None if r.estimate is None or r.estimate.state is PoseState.TARGET
+                                   else r.estimate for r in results])
 
 
 def test_a_brisk_turn_right_after_initialisation_keeps_the_map_round_the_room(tmp_path_factory):
