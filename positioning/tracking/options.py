@@ -52,6 +52,14 @@ class InitOptions:
     min_parallax_deg: float = 1.0  # median rotation-compensated parallax A<->B
     max_reproj_px: float = 1.5  # a triangulated point must reproject within this in A and B
     min_point_parallax_deg: float = 0.5  # a single point's own parallax
+    # Before a map exists, a target pose this sure may start it (reference A and frame B),
+    # though keyframes after it anchor only from ``anchor_max_position_std_m``: behind a
+    # wide lens (f 450 px at 640x512) the cube's poses in agile swings were 5-10 mm sure
+    # and the map never started (80 % of frames with a pose, one 0.42 m off); with 8, 12 or
+    # 20 mm here 100 %, 3.4-4.6 mm RMS; the paper camera and the other lenses unchanged
+    # (python -m bench intrinsics). The whole anchor bound at 12 mm instead bent maps to
+    # less sure poses (VGA agile 2.4 -> 3.2 mm, wide turn 31 -> 38 mm).
+    max_position_std_m: float = 0.010
 
 
 @dataclass(frozen=True)

@@ -349,12 +349,12 @@ class Tracker:
         return projected
 
     def _anchors(self, target: TargetObservation | None) -> bool:
-        """Is this target pose good enough to hold a keyframe (and so the map) in place?
-        A face seen at a grazing angle fits worse and its pose is uncertain: such a pose
-        is still published, but the map is not bent to it."""
+        """Is this target pose sure enough to hold a keyframe (and so the map) in place? A less sure one
+        is published, not bent to; before a map exists ``init.max_position_std_m`` (none is worse)."""
         if target is None or target.reproj_rms_px > self.options.anchor_max_reproj_px:
             return False
-        return target.covariance is None or _sigma(target.covariance) <= self.options.anchor_max_position_std_m
+        bound = self.options.anchor_max_position_std_m if self.initialised else self.options.init.max_position_std_m
+        return target.covariance is None or _sigma(target.covariance) <= bound
 
     def _jumped(self, a: Transform, b: Transform) -> bool:
         return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
