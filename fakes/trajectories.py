@@ -19,7 +19,7 @@ the corner between the +x and -y faces, so three faces are in view.
 ==============  ===========================================================================
 
 The robot-motion scenarios (``turn_after_init``, ``spin_in_place``, ``spin_in_place_fast``,
-``spin_on_axis``, ``agile``, ``passers_by``, ``blank_wall``, ``long_lap``) live in
+``spin_brisk``, ``spin_on_axis``, ``agile``, ``passers_by``, ``blank_wall``, ``long_lap``) live in
 ``fakes.scenarios``, with their own default rates and the effects that go with them.
 
 Poses are smooth: positions and angles are clamped cubic splines through keyframes (zero

@@ -54,7 +54,7 @@ def test_turn_after_init_turns_away_briskly_driving_then_laps_the_room_and_retur
 
 
 @pytest.mark.parametrize("name, lever_m, rate_deg_s", [("spin_in_place", 0.2, 45), ("spin_in_place_fast", 0.2, 90),
-                                                        ("spin_on_axis", 0.0, 45)])
+                                                        ("spin_brisk", 0.2, 120), ("spin_on_axis", 0.0, 45)])
 def test_spins_turn_on_the_spot_about_an_axis_behind_the_camera(name, lever_m, rate_deg_s):
     times, T, rate, _, in_view = kinematics(name)
     spinning = rate > 0.98 * rate_deg_s

@@ -8,7 +8,7 @@ import time
 
 # fakes.trajectories.TRAJECTORIES, spelled out so that --help needs no numpy import
 TRAJECTORY_NAMES = ("static", "orbit", "paper", "room_walk", "spin", "turn_after_init", "spin_in_place",
-                    "spin_in_place_fast", "spin_on_axis", "agile", "passers_by", "blank_wall", "long_lap")
+                    "spin_in_place_fast", "spin_brisk", "spin_on_axis", "agile", "passers_by", "blank_wall", "long_lap")
 
 
 def register(subparsers) -> None:
