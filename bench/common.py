@@ -8,6 +8,7 @@ import platform
 import re
 import statistics
 import subprocess
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -82,3 +83,38 @@ def previous_tree(commit: str, work: Path, given: str | None = None) -> Iterator
     finally:
         if done.returncode == 0:
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)
+
+
+def track_in_process(sequence: Path, calibration):
+    """The tracker over a rendered sequence in this process, bundle adjustment in the frame
+    loop (deterministic), the cube's model and nothing else known: its
+    ``positioning.evaluation.RunScore`` against the sequence's ground truth."""
+    from dataclasses import replace
+
+    from drivers.sequence import read_mono_png, read_sequence_index
+    from positioning.evaluation import score_estimates
+    from positioning.target import make_cube
+    from positioning.tracking.options import BundleOptions
+    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from positioning.trajectory_io import read_tum
+
+    options = ProcessorOptions()
+    options = replace(options, tracker=replace(options.tracker, bundle=BundleOptions(background=False)))
+    processor = TrackingProcessor(make_cube(), calibration, options)
+    try:
+        results = [processor.process(read_mono_png(e.path), e.stamp_ns, i)
+                   for i, e in enumerate(read_sequence_index(sequence))]
+    finally:
+        processor.close()
+    return score_estimates(read_tum(sequence / "groundtruth.tum"), [r.estimate for r in results])
+
+
+@contextlib.contextmanager
+def renders_root(bench: str, variable: str = "CUBELOC_BENCH_SEQUENCES") -> Iterator[tuple[Path, Path]]:
+    """(where a bench keeps its renders, a scratch folder): the folder ``variable`` names
+    when set (kept for the next run), else the scratch folder, removed afterwards."""
+    keep = os.environ.get(variable)
+    with tempfile.TemporaryDirectory(prefix=f"cubeloc-bench-{bench}-") as tmp:
+        root = Path(keep) if keep else Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
+        yield root, Path(tmp)

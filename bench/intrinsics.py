@@ -17,12 +17,10 @@ a comma-separated subset of the lenses.
 from __future__ import annotations
 
 import os
-import tempfile
-from dataclasses import replace
 from pathlib import Path
 
-from bench.common import machine_line, markdown_table
-from fakes.lenses import LENSES, lens_calibration
+from bench.common import machine_line, markdown_table, renders_root, track_in_process
+from fakes.lenses import LENSES, OTHER_LENSES, lens_calibration
 
 TITLE = "The tracker behind other lenses"
 # scenario: seconds rendered (the half-resolution tests' lengths)
@@ -31,37 +29,19 @@ SEED = 11
 
 
 def _run(root: Path, lens: str, scenario: str):
-    from drivers.sequence import read_mono_png, read_sequence_index
     from fakes.sequence import write_synthetic_sequence
-    from positioning.evaluation import score_estimates
-    from positioning.target import make_cube
-    from positioning.tracking.options import BundleOptions
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-    from positioning.trajectory_io import read_tum
 
     calibration = lens_calibration(lens)
     out = root / f"{lens}-{scenario}"
     if not (out / "groundtruth.tum").is_file():
         write_synthetic_sequence(out, scenario, seconds=SCENARIOS[scenario], seed=SEED, calibration=calibration)
-    options = ProcessorOptions()
-    options = replace(options, tracker=replace(options.tracker, bundle=BundleOptions(background=False)))
-    truth = read_tum(out / "groundtruth.tum")
-    processor = TrackingProcessor(make_cube(), calibration, options)
-    try:
-        results = [processor.process(read_mono_png(e.path), e.stamp_ns, i)
-                   for i, e in enumerate(read_sequence_index(out))]
-    finally:
-        processor.close()
-    return score_estimates(truth, [r.estimate for r in results])
+    return track_in_process(out, calibration)
 
 
 def run() -> str:
-    lenses = [s for s in os.environ.get("CUBELOC_BENCH_INTRINSICS", ",".join(LENSES)).split(",") if s]
-    keep = os.environ.get("CUBELOC_BENCH_SEQUENCES")
+    lenses = [s for s in os.environ.get("CUBELOC_BENCH_INTRINSICS", ",".join(OTHER_LENSES)).split(",") if s]
     rows = []
-    with tempfile.TemporaryDirectory(prefix="cubeloc-bench-intrinsics-") as tmp:
-        root = Path(keep) if keep else Path(tmp)
-        root.mkdir(parents=True, exist_ok=True)
+    with renders_root("intrinsics") as (root, _):
         for lens in lenses:
             w, h, f, _, d, what = LENSES[lens]
             for scenario in SCENARIOS:

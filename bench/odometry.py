@@ -15,13 +15,11 @@ scores them.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, markdown_table
+from bench.common import REPO, markdown_table, renders_root
 from bench.scenarios import _render, _score, _track
 
 TITLE = "Wheel odometry in: vision alone and vision + wheel odometry on the same frames"
@@ -56,11 +54,8 @@ def run() -> str:
     from fakes.trajectories import DEFAULT_SECONDS, make_trajectory
     from positioning.geometry import Transform
 
-    keep = os.environ.get("CUBELOC_BENCH_SCENARIOS")
     rows = []
-    with tempfile.TemporaryDirectory(prefix="cubeloc-bench-odometry-") as tmp:
-        root = Path(keep) if keep else Path(tmp)
-        root.mkdir(parents=True, exist_ok=True)
+    with renders_root("odometry", "CUBELOC_BENCH_SCENARIOS") as (root, tmp):
         for name in SCENARIOS:
             sequence = _render(root, name)
             seconds = DEFAULT_SECONDS[name]

@@ -17,12 +17,11 @@ keeps the renders (~1.5 min each), as for ``bench scenarios``.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, machine_line, markdown_table
+from bench.common import REPO, machine_line, markdown_table, renders_root
 from bench.scenarios import _render, _score, _track
 
 TITLE = "One scenario over several renders (seeds)"
@@ -31,11 +30,8 @@ TITLE = "One scenario over several renders (seeds)"
 def run() -> str:
     seeds = [int(s) for s in os.environ.get("CUBELOC_BENCH_SEEDS", "1,2,6,8").split(",") if s]
     name = os.environ.get("CUBELOC_BENCH_SEEDS_SCENARIO", "turn_after_init")
-    keep = os.environ.get("CUBELOC_BENCH_SEQUENCES")
     rows, rms = [], []
-    with tempfile.TemporaryDirectory(prefix="cubeloc-bench-seeds-") as tmp:
-        root = Path(keep) if keep else Path(tmp)
-        root.mkdir(parents=True, exist_ok=True)
+    with renders_root("seeds") as (root, tmp):
         for seed in seeds:
             sequence = _render(root, name, seed)
             out = Path(tmp) / f"{name}-{seed}.tum"

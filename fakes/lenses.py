@@ -8,6 +8,9 @@ shared with it.
 ``vga``     640x480, f 600 px (HFOV 56 deg), principal point 11 px right and 8 px up of
             the centre, barrel and a little tangential distortion
 =========  =============================================================================
+
+``paper_half`` is the paper's camera at 640x512 (f 833 px, HFOV 42 deg): the tracker
+tests' camera, for side-by-side rows; ``OTHER_LENSES`` are the three above.
 """
 
 from __future__ import annotations
@@ -21,7 +24,10 @@ LENSES: dict[str, tuple[int, int, float, tuple[float, float], tuple[float, ...],
     "wide": (640, 512, 450.0, (319.5, 255.5), (-0.25, 0.08, 0.0, 0.0, 0.0), "HFOV 71 deg, strong barrel"),
     "narrow": (640, 512, 1250.0, (319.5, 255.5), (-0.03, 0.0, 0.0, 0.0, 0.0), "HFOV 29 deg"),
     "vga": (640, 480, 600.0, (331.0, 247.0), (-0.12, 0.03, 0.001, -0.0005, 0.0), "HFOV 56 deg, centre off"),
+    "paper_half": (640, 512, 8.0e-3 / 4.8e-6 / 2.0, (319.5, 255.5), (-0.08, 0.05, 0.0, 0.0, 0.0),
+                   "the paper's camera at half resolution"),
 }
+OTHER_LENSES = ("wide", "narrow", "vga")
 
 
 def lens_calibration(name: str) -> CameraCalibration:

@@ -140,7 +140,7 @@ def _turn_after_init(times: np.ndarray, seconds: float) -> list[Transform]:
     return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
 
 
-def _spin(times: np.ndarray, seconds: float, lever_m: float, rate_deg_s: float) -> list[Transform]:
+def spin(times: np.ndarray, seconds: float, lever_m: float, rate_deg_s: float) -> list[Transform]:
     """Initialise for 2.5 s (a slow drive round the cube), then turn on the spot about a
     vertical axis ``lever_m`` behind the camera at ``rate_deg_s`` (0.5 s ramps), as many
     degrees as the time allows up to two turns, and come to rest facing the cube."""
@@ -248,10 +248,10 @@ def _long_lap(times: np.ndarray, seconds: float) -> list[Transform]:
 
 MAKERS = {
     "turn_after_init": _turn_after_init,
-    "spin_in_place": lambda t, s: _spin(t, s, 0.2, 45.0),
-    "spin_in_place_fast": lambda t, s: _spin(t, s, 0.2, 90.0),
-    "spin_brisk": lambda t, s: _spin(t, s, 0.2, 120.0),
-    "spin_on_axis": lambda t, s: _spin(t, s, 0.0, 45.0),
+    "spin_in_place": lambda t, s: spin(t, s, 0.2, 45.0),
+    "spin_in_place_fast": lambda t, s: spin(t, s, 0.2, 90.0),
+    "spin_brisk": lambda t, s: spin(t, s, 0.2, 120.0),
+    "spin_on_axis": lambda t, s: spin(t, s, 0.0, 45.0),
     "agile": _agile,
     "passers_by": _passers_by,
     "blank_wall": _blank_wall,

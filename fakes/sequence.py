@@ -29,10 +29,10 @@ from cubeloc.errors import InputFileError
 from drivers.sequence import SequenceWriter
 from fakes.camera import RenderOptions, SyntheticCamera
 from fakes.room import Room
-from fakes.scenarios import scenario_effects
+from fakes.scenarios import Effects, scenario_effects
 from fakes.trajectories import make_trajectory
 from positioning.target import Target, make_cube
-from positioning.trajectory_io import write_tum
+from positioning.trajectory_io import StampedPose, write_tum
 
 log = structlog.get_logger()
 
@@ -57,17 +57,21 @@ def write_synthetic_sequence(
     room: Room | None = None,
     options: RenderOptions | None = None,
     progress: Callable[[int, int], None] | None = None,
+    poses: list[StampedPose] | None = None,
+    effects: Effects | None = None,
 ) -> SequenceSummary:
     """Render ``trajectory`` into the sequence directory ``out_dir`` (which must not exist
-    or be empty). ``progress(done, total)`` is called after every frame."""
+    or be empty). ``progress(done, total)`` is called after every frame. ``poses`` and
+    ``effects``, where given, replace the named trajectory's (``trajectory`` then only
+    names the render)."""
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputFileError(f"{out}: already exists and is not an empty directory; choose another --out")
-    poses = make_trajectory(trajectory, seconds, fps)
+    poses = make_trajectory(trajectory, seconds, fps) if poses is None else poses
     calibration = calibration or paper_camera()
     camera = SyntheticCamera(
         poses, name=trajectory, calibration=calibration, target=target, room=room, seed=seed, options=options,
-        effects=scenario_effects(trajectory, poses),
+        effects=scenario_effects(trajectory, poses) if effects is None else effects,
     )
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))

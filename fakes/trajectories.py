@@ -169,9 +169,22 @@ def make_trajectory(name: str, seconds: float | None = None, fps: float | None =
         raise TrajectoryError(f"{name} needs --seconds of at least {scenarios.TIMING[name][2]:g} (got {seconds:g})")
     if not (np.isfinite(fps) and 0 < fps <= 1000):
         raise TrajectoryError(f"--fps must be in (0, 1000], got {fps:g}")
+    return _sampled(_MAKERS[name], seconds, fps)
+
+
+def spin_trajectory(rate_deg_s: float, seconds: float = 14.0, fps: float = 10.0,
+                    lever_m: float = 0.2) -> list[StampedPose]:
+    """``spin_in_place`` at any turn rate and frame rate: the camera ``lever_m`` ahead of
+    the robot's axis, two turns at ``rate_deg_s`` right after initialisation (bench turns)."""
+    if not (np.isfinite(rate_deg_s) and rate_deg_s > 0):
+        raise TrajectoryError(f"the turn rate must be a positive number of deg/s, got {rate_deg_s:g}")
+    return _sampled(lambda times, s: scenarios.spin(times, s, lever_m, rate_deg_s), float(seconds), float(fps))
+
+
+def _sampled(maker, seconds: float, fps: float) -> list[StampedPose]:
     count = max(1, int(np.floor(seconds * fps + 1e-9)))
     frame_ns = np.rint(np.arange(count) * 1e9 / fps).astype(np.int64)
-    poses = trajectory_at(name, frame_ns / 1e9, seconds)
+    poses = maker(frame_ns / 1e9, seconds)
     return [StampedPose(EPOCH_NS + int(ns), pose) for ns, pose in zip(frame_ns, poses, strict=True)]
 
 

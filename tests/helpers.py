@@ -58,13 +58,9 @@ def wait_until(predicate: Callable[[], object], timeout_s: float = 30.0, poll_s:
 def half_resolution():
     """The paper's camera at 640x512 (fx 833 px): the tracker tests' camera, 4x cheaper to
     render and track than the full 1280x1024 the bench uses."""
-    from calib.camera_info import CameraCalibration, paper_camera
+    from fakes.lenses import lens_calibration
 
-    full = paper_camera()
-    k = full.camera_matrix.copy()
-    k[:2] /= 2.0
-    k[0, 2], k[1, 2] = (640 - 1) / 2.0, (512 - 1) / 2.0
-    return CameraCalibration(640, 512, k, full.distortion, "plumb_bob", "half")
+    return lens_calibration("paper_half")
 
 
 class Listener:

@@ -140,6 +140,13 @@ class TrackerOptions:
     relocalised_jump_deg: float = 1.0
     fuse_target_with_map: bool = False  # target visible: one pose from its corners and the map points
     max_motion_m: float = 0.5  # a tracker pose further than this from the prediction is refused
+    # ...or turned further than this from it: the prediction is off by the change of turn
+    # rate within one frame, and 5 deg a frame is 50 deg/s at 10 fps. Behind the narrow lens
+    # (bench turns, 90 deg/s at 10 fps) PnP took a pose 7.7 deg from the prediction (1.2 deg
+    # from the truth) where the turn came round to the first turn's drifted points, and the
+    # track went on 16 deg and 0.7 m off: 254 -> 64 mm RMS with this; 3 deg also refused
+    # right poses at 18 deg a frame (76 against 84 % of frames with a pose)
+    max_motion_deg: float = 5.0
     max_extrapolation_s: float = 0.5  # the motion model predicts no further ahead than this
     # too few map points in view (a turn on the spot): held on rays (pose_fit.py)
     min_hold_rays: int = 30  # tracks without a point, agreeing with one orientation

@@ -4,9 +4,8 @@ Per frame it takes feature tracks (ids and pixels, from ``features.KltFrontEnd``
 other source) and, when the target is in view, a trusted target pose with its corners.
 
 - Before a map exists it runs the paper's Algorithms 1 and 2 (``initialiser``).
-- Afterwards the pose comes from PnP with RANSAC on the tracks that carry map points,
-  seeded and sanity-checked by a constant-velocity motion model, then refined with
-  Levenberg-Marquardt on the inliers.
+- Afterwards the pose comes from PnP with RANSAC on the map points' tracks, refined with
+  Levenberg-Marquardt on the inliers, refused 0.5 m or 5 deg from the motion model's.
 - While the target is trusted, its pose is the published pose and keyframes made then
   are *anchored*: the target's corners enter bundle adjustment as fixed world points, so
   the map cannot drift while the target is visible. When the target comes back and
@@ -398,7 +397,8 @@ class Tracker:
         drop = ids[~mask]
         if not np.all(np.isfinite(pose.matrix())):
             return None, 0, drop, 0.0, None
-        if prediction is not None and np.linalg.norm(pose.translation - prediction.translation) > o.max_motion_m:
+        if prediction is not None and (np.linalg.norm(pose.translation - prediction.translation) > o.max_motion_m
+                                       or np.degrees(pose.rotation_angle_to(prediction)) > o.max_motion_deg):
             return None, int(mask.sum()), drop, 0.0, None
         rms = float(np.sqrt(np.mean(err[mask] ** 2)))
         fit = fit_pose(pose, obj[mask], img[mask], None, fx=self.fx, sigma_px=max(rms, o.track_sigma_px),
