@@ -276,9 +276,10 @@ class OdometryConfig(Section):
     # json: cubeloc.odometry/1 documents on cubeloc/<name>/odometry (README)
     source: Literal["ros2", "json"] = "ros2"
     topic: str = Field("odom", description="the ROS 2 topic, relative to [ros2] namespace unless absolute")
-    # bridge only (default): a pose from the last one while the camera has none; as_prior: also
-    # the tracker's motion prior and held position (measured worse on blank_wall: bench odometry)
-    as_prior: bool = False
+    # as_prior (default): the bridge, and the tracker's motion prior, held position and a
+    # relative-motion factor on each map pose; false: only the bridge (a pose from the last
+    # one while the camera has none; every pose the camera has is vision's alone)
+    as_prior: bool = True
     scale_sigma: float = Field(0.02, gt=0, le=1, description="position error per metre driven")
     turn_sigma: float = Field(0.02, gt=0, le=1, description="heading error per radian turned")
     heading_drift_deg_s: float = Field(0.2, ge=0, le=90, description="heading error per second")

@@ -102,6 +102,31 @@ def test_the_camera_moves_as_its_mount_says_when_the_base_turns():
     assert covariance[0, 0] > covariance[3, 3] * 0.2**2 > 0  # the heading error at the lever arm
 
 
+def test_the_map_pose_and_the_wheels_motion_are_combined_by_their_covariances():
+    """The relative-motion factor: the map's pose (PnP) and the last pose carried on by the
+    wheels, each weighed by its covariance; as given where the odometry is only the bridge."""
+    mount = Transform(Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix(), [0.2, 0.0, 1.0])
+    buffer = OdometryBuffer()
+    buffer.add(T0, [0, 0, 0], [0, 0, 0, 1])
+    buffer.add(T0 + 10**8, [0.05, 0, 0], [0, 0, 0, 1])  # 5 cm ahead in 0.1 s
+    prior = OdometryPrior(buffer, mount, as_prior=True)
+    carried = prior.predict(mount, T0, T0 + 10**8)
+    odometry = prior.covariance(T0, T0 + 10**8)
+    # the map's pose 10 mm aside and 1 deg off in yaw, as sure as the odometry: halfway
+    off = Transform(Rotation.from_euler("z", 1.0, degrees=True).as_matrix() @ carried.rotation,
+                    carried.translation + [0.0, 0.010, 0.0])
+    fused, covariance = prior.fuse(off, odometry.copy(), mount, T0, T0 + 10**8)
+    np.testing.assert_allclose(fused.translation, carried.translation + [0.0, 0.005, 0.0], atol=1e-9)
+    assert abs(np.degrees(carried.rotation_angle_to(fused)) - 0.5) < 1e-6
+    np.testing.assert_allclose(covariance, odometry / 2.0, atol=1e-15)
+    # nine times less sure than the odometry: a tenth of the way from the odometry's pose
+    fused, _ = prior.fuse(off, 9.0 * odometry, mount, T0, T0 + 10**8)
+    np.testing.assert_allclose(fused.translation, carried.translation + [0.0, 0.001, 0.0], atol=1e-9)
+    # only the bridge: untouched
+    bridge = OdometryPrior(buffer, mount)
+    assert bridge.fuse(off, odometry, mount, T0, T0 + 10**8) == (off, odometry)
+
+
 def test_the_simulated_odometry_is_as_wrong_as_it_says():
     """spin_in_place's base turns on the spot (the camera 0.2 m ahead of the axis): its
     odometry turns 1 % too far plus 0.2 deg/s, and drives nearly nowhere."""

@@ -27,6 +27,11 @@ from positioning.tracking.types import Tracks
 Held = tuple[Transform, np.ndarray]  # pose and its 6x6 covariance (ROS order)
 
 
+def position_sigma(covariance: np.ndarray | None) -> float:
+    """The position's standard deviation (root of the covariance's trace), 0 without one."""
+    return 0.0 if covariance is None else float(np.sqrt(max(np.trace(np.asarray(covariance)[:3, :3]), 0.0)))
+
+
 class RayHold:
     def __init__(self, options: TrackerOptions, fx: float) -> None:
         self.options = options

@@ -45,7 +45,7 @@ from positioning.camera_model import project, project_normalised, undistort
 from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.tracking import bundle
-from positioning.tracking.hold import Drift, RayHold
+from positioning.tracking.hold import Drift, RayHold, position_sigma
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
@@ -54,11 +54,6 @@ from positioning.tracking.pose_fit import fit_pose
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
-
-
-def _sigma(covariance: np.ndarray | None) -> float:
-    """The position's standard deviation (root of the covariance's trace), 0 without one."""
-    return 0.0 if covariance is None else float(np.sqrt(max(np.trace(np.asarray(covariance)[:3, :3]), 0.0)))
 
 
 class Tracker:
@@ -118,6 +113,8 @@ class Tracker:
 
         prediction = self.predict(stamp_ns)
         tracked, inliers, drop, rms, covariance = self._pnp(tracks, xn, prediction)
+        if self.odometry is not None:  # the wheels' motion since the last pose: a relative-motion factor
+            tracked, covariance = self.odometry.fuse(tracked, covariance, self._last, self._last_stamp, stamp_ns)
         held = None
         if tracked is None and trusted is None and prediction is not None:
             odometry = None if self.odometry is None or not self.odometry.as_prior else self.odometry.covariance(
@@ -169,7 +166,7 @@ class Tracker:
         if held is None:
             self._hold.end()
         self._hold.rebase(pose if held is None else None, tracks.ids, xn)
-        self._frame_sigma = _sigma(trusted.covariance if trusted is not None else covariance)
+        self._frame_sigma = position_sigma(trusted.covariance if trusted is not None else covariance)
         self._last_covariance = estimate.covariance
         self._update_motion(pose, stamp_ns)
         self._frame_pose = pose
@@ -224,7 +221,7 @@ class Tracker:
         self._frame_pose, self._frame_stamp = pose, stamp_ns
         self._frame_tracks, self._frame_xn = tracks, undistort(tracks.pixels, self.calibration)
         self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
-        self._frame_keyframe.position_sigma_m, self._frame_keyframe.drift_m = _sigma(match), self._drift.grown_m
+        self._frame_keyframe.position_sigma_m, self._frame_keyframe.drift_m = position_sigma(match), self._drift.grown_m
         self._frames_since_keyframe, self._kf_points_at_insert = 0, len(tracks.ids)
         return covariance
 
@@ -353,7 +350,7 @@ class Tracker:
         if target is None or target.reproj_rms_px > self.options.anchor_max_reproj_px:
             return False
         bound = self.options.anchor_max_position_std_m if self.initialised else self.options.init.max_position_std_m
-        return target.covariance is None or _sigma(target.covariance) <= bound
+        return target.covariance is None or position_sigma(target.covariance) <= bound
 
     def _jumped(self, a: Transform, b: Transform) -> bool:
         return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
