@@ -269,7 +269,8 @@ class Ros2Config(Section):
 
 class OdometryConfig(Section):
     """Wheel odometry in (positioning/tracking/odometry.py): the tracker's bridge where the
-    camera has no pose (and with ``as_prior`` its motion prior too); never over the target."""
+    camera has no pose (and with ``as_prior``, the default, its motion prior and a
+    relative-motion factor on its map poses too); never over the target."""
 
     enabled: bool = False
     # ros2: nav_msgs/msg/Odometry in CDR on rmw_zenoh's key for [ros2] domain_id + topic;

@@ -18,7 +18,7 @@ Bad samples never enter: not finite, a non-unit quaternion, older than the newes
 The odometry never overrides the target. ``OdometryPrior.bridge``: while the tracker is
 lost, the last pose carried on, with this covariance added to that pose's, is published,
 and nothing of it enters the map (blank_wall: 85.8 -> 100 % of frames with a pose, the
-rest unchanged). With ``as_prior`` (the default) it is also the prediction of the next
+rest unchanged). With ``as_prior`` (the config's default) it is also the prediction of the next
 pose (where tracks and the target are looked for), the held position on rays
 (positioning.tracking.hold) and a relative-motion factor on each of the map's poses
 (``fuse``), so a map that drifts is held to the wheels' motion (``bench odometry``, full
@@ -174,7 +174,7 @@ class OdometryPrior:
     def __init__(self, buffer: OdometryBuffer, T_base_camera: Transform, up: np.ndarray = (0.0, 0.0, 1.0),
                  as_prior: bool = False) -> None:
         self.buffer = buffer
-        self.as_prior = as_prior  # also the tracker's motion prior and held position, not only its bridge
+        self.as_prior = as_prior  # also the motion prior, held position and factor on map poses, not only the bridge
         self.T_base_camera = T_base_camera
         self.up = np.asarray(up, np.float64) / np.linalg.norm(up)
         self._lever = np.asarray(T_base_camera.translation[:2], np.float64)  # camera from the axis, base frame
