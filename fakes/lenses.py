@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.camera_info import CameraCalibration
+from calib.camera_info import CameraCalibration, paper_camera
+
+_PAPER = paper_camera()  # paper_half is it at 640x512
 
 # name: (width, height, f px, principal point, plumb_bob distortion, what it stands for)
 LENSES: dict[str, tuple[int, int, float, tuple[float, float], tuple[float, ...], str]] = {
     "wide": (640, 512, 450.0, (319.5, 255.5), (-0.25, 0.08, 0.0, 0.0, 0.0), "HFOV 71 deg, strong barrel"),
     "narrow": (640, 512, 1250.0, (319.5, 255.5), (-0.03, 0.0, 0.0, 0.0, 0.0), "HFOV 29 deg"),
     "vga": (640, 480, 600.0, (331.0, 247.0), (-0.12, 0.03, 0.001, -0.0005, 0.0), "HFOV 56 deg, centre off"),
-    "paper_half": (640, 512, 8.0e-3 / 4.8e-6 / 2.0, (319.5, 255.5), (-0.08, 0.05, 0.0, 0.0, 0.0),
+    "paper_half": (640, 512, _PAPER.camera_matrix[0, 0] / 2.0, (319.5, 255.5), tuple(_PAPER.distortion),
                    "the paper's camera at half resolution"),
 }
 OTHER_LENSES = ("wide", "narrow", "vga")

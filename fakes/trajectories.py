@@ -163,12 +163,9 @@ def make_trajectory(name: str, seconds: float | None = None, fps: float | None =
         raise TrajectoryError(f"unknown trajectory {name!r}; known: {', '.join(TRAJECTORIES)}")
     seconds = DEFAULT_SECONDS[name] if seconds is None else float(seconds)
     fps = DEFAULT_FPS_OF.get(name, DEFAULT_FPS) if fps is None else float(fps)
-    if not (np.isfinite(seconds) and seconds > 0):
-        raise TrajectoryError(f"--seconds must be a positive number, got {seconds:g}")
+    _check_seconds(seconds)
     if name in scenarios.TIMING and seconds < scenarios.TIMING[name][2]:
         raise TrajectoryError(f"{name} needs --seconds of at least {scenarios.TIMING[name][2]:g} (got {seconds:g})")
-    if not (np.isfinite(fps) and 0 < fps <= 1000):
-        raise TrajectoryError(f"--fps must be in (0, 1000], got {fps:g}")
     return _sampled(_MAKERS[name], seconds, fps)
 
 
@@ -178,10 +175,19 @@ def spin_trajectory(rate_deg_s: float, seconds: float = 14.0, fps: float = 10.0,
     the robot's axis, two turns at ``rate_deg_s`` right after initialisation (bench turns)."""
     if not (np.isfinite(rate_deg_s) and rate_deg_s > 0):
         raise TrajectoryError(f"the turn rate must be a positive number of deg/s, got {rate_deg_s:g}")
+    _check_seconds(float(seconds))
     return _sampled(lambda times, s: scenarios.spin(times, s, lever_m, rate_deg_s), float(seconds), float(fps))
 
 
+def _check_seconds(seconds: float) -> None:
+    if not (np.isfinite(seconds) and seconds > 0):
+        raise TrajectoryError(f"--seconds must be a positive number, got {seconds:g}")
+
+
 def _sampled(maker, seconds: float, fps: float) -> list[StampedPose]:
+    """``maker``'s poses at ``fps`` for ``seconds`` (checked positive), stamped from EPOCH_NS."""
+    if not (np.isfinite(fps) and 0 < fps <= 1000):
+        raise TrajectoryError(f"--fps must be in (0, 1000], got {fps:g}")
     count = max(1, int(np.floor(seconds * fps + 1e-9)))
     frame_ns = np.rint(np.arange(count) * 1e9 / fps).astype(np.int64)
     poses = maker(frame_ns / 1e9, seconds)
