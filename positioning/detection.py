@@ -158,6 +158,7 @@ class TagDetector:
 # fit a straight line per edge (straight only without distortion), intersect neighbours,
 # and distort the corners back.
 
+_NEXT = np.array([1, 2, 3, 0])  # corner k's neighbour along the quad
 EDGE_END_FRACTION = 0.12  # skip the edge ends, where the neighbouring edge's blur reaches
 PROFILE_STEP_PX = 0.25
 MIN_PROFILE_CONTRAST = 25.0  # grey levels between the black border and the white margin
@@ -168,17 +169,18 @@ def _edge_points(image_f32: np.ndarray, corners: np.ndarray, half_width_px: floa
     """Sub-pixel points (4, K, 2) of the black-to-white step on K profiles across each
     edge k -> k+1, and which are clean steps (4, K): none on an edge with clean steps
     over less than half its length."""
-    directions = np.roll(corners, -1, axis=0) - corners
-    length = float(np.linalg.norm(directions, axis=1).min())
-    count = max(MIN_EDGE_SAMPLES, int(length * (1 - 2 * EDGE_END_FRACTION)))
+    directions = corners[_NEXT] - corners
+    lengths = np.hypot(directions[:, 0], directions[:, 1])
+    count = max(MIN_EDGE_SAMPLES, int(float(lengths.min()) * (1 - 2 * EDGE_END_FRACTION)))
     fractions = np.linspace(EDGE_END_FRACTION, 1 - EDGE_END_FRACTION, count)
-    units = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    units = directions / lengths[:, None]
     outward = np.column_stack([units[:, 1], -units[:, 0]])  # corners turn clockwise on screen
     across = np.arange(-half_width_px, half_width_px + 1e-9, PROFILE_STEP_PX)
     base = corners[:, None, :] + fractions[None, :, None] * directions[:, None, :]  # (4, K, 2)
-    samples = base[:, :, None, :] + across[None, None, :, None] * outward[:, None, None, :]  # (4, K, M, 2)
-    flat = samples.reshape(4 * count, len(across), 2).astype(np.float32)
-    profiles = cv2.remap(image_f32, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR,
+    # The samples (4, K, M) along each profile, x and y apart (the layout remap reads).
+    map_x, map_y = ((base[:, :, None, axis] + across[None, None, :] * outward[:, None, None, axis])
+                    .astype(np.float32).reshape(4 * count, len(across)) for axis in (0, 1))
+    profiles = cv2.remap(image_f32, map_x, map_y, cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE).reshape(4, count, len(across))
     quarter = max(2, len(across) // 4)
     dark = profiles[..., :quarter].mean(axis=2)  # inside: the black border
@@ -262,7 +264,8 @@ def refine_corners(image: np.ndarray, detection: TagDetection, calibration: Came
     shift = np.array([x0, y0], dtype=np.float64)
     corners = detection.corners.copy()
     for _ in range(passes):
-        size = float(np.mean(np.linalg.norm(corners[[1, 2, 3, 0]] - corners, axis=1)))
+        sides = corners[_NEXT] - corners
+        size = float(np.mean(np.hypot(sides[:, 0], sides[:, 1])))
         half_width = min(0.4 * size / cells, 4.0)
         if half_width < 1.0:
             return detection  # cells under ~2.5 px: the library's corners are as good

@@ -7,8 +7,9 @@ aligned directly to all of them: each edge is projected at the current pose with
 distortion applied to the model (``cv2.projectPoints``: nothing is undistorted, curved
 edges stay curved), short intensity profiles across it measure where the image's step
 really is, and Gauss-Newton moves the pose to cancel those offsets along the edges'
-normals. Three re-measured iterations; profiles that are not a clean single step (an
-occluder, glare, a neighbouring edge) are dropped, and then the residual outliers.
+normals. Two re-measured iterations, the first on half the profiles; profiles that
+are not a clean single step (an occluder, glare, a neighbouring edge) are dropped, and
+then the residual outliers.
 
 The step's position comes from its area, as in ``detection.refine_corners``: pixels
 average light over their area, which keeps the area of a step whether blurred or not.
@@ -146,17 +147,18 @@ def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translat
     if np.any(points[:, 2] <= 1e-3):
         return None
     pixels, point_j = project_with_jacobian(points, calibration)
-    tangent = np.matmul(point_j, (model.tangents @ rotation.T)[:, :, None])[:, :, 0]
-    across = np.matmul(point_j, (model.normals @ rotation.T)[:, :, None])[:, :, 0] * model.cell_m[:, None]
+    # (einsum: a third of matmul's time on a stack of 2x3 matrices)
+    tangent = np.einsum("nij,nj->ni", point_j, model.tangents @ rotation.T)
+    across = np.einsum("nij,nj->ni", point_j, model.normals @ rotation.T) * model.cell_m[:, None]
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-300
-    normal *= np.where(np.sum(normal * across, axis=1) < 0, -1.0, 1.0)[:, None]
+    normal /= (np.hypot(normal[:, 0], normal[:, 1]) + 1e-300)[:, None]
+    normal *= np.where(normal[:, 0] * across[:, 0] + normal[:, 1] * across[:, 1] < 0, -1.0, 1.0)[:, None]
     # Profiles run along the image of the tag-plane normal (not the image normal: under
     # shear that would reach into the neighbouring cells along the edge); a step found at
     # s along it is s * cos(angle) from the projected edge along the image normal.
-    cell_px = np.linalg.norm(across, axis=1)  # one cell across the edge, foreshortened
+    cell_px = np.hypot(across[:, 0], across[:, 1])  # one cell across the edge, foreshortened
     direction = across / (cell_px[:, None] + 1e-300)
-    cosine = np.sum(direction * normal, axis=1)
+    cosine = direction[:, 0] * normal[:, 0] + direction[:, 1] * normal[:, 1]
     half = np.minimum(PROFILE_HALF_CELLS * cell_px, MAX_HALF_WIDTH_PX)
     usable = (half >= MIN_HALF_WIDTH_PX) & (cosine > 0.3)
     usable &= (pixels[:, 0] > 4) & (pixels[:, 1] > 4)
@@ -235,9 +237,19 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
         cell_px = calibration.camera_matrix[0, 0] * tag.size_m / tag_edges(target.family, kept[0]).cells / depth
         samples_per_cell = int(np.clip(round(cell_px / PIXELS_PER_PROFILE), *SAMPLES_PER_CELL))
     model = edge_model(target, tuple(kept), samples_per_cell)
+    # Coarse to fine: the iterations before the last measure half the profiles (half as
+    # many a cell; they only bring the pose near); the last measures every profile at the
+    # pose it starts from, and the fit is its. A measurement costs ~0.45 ms + 0.55 us a
+    # profile (648 instead of 1188 at 2 m: 0.3 ms less); over the range map's 480 views
+    # the poses moved 0.004 mm (median). One profile a cell was as close there, but behind
+    # the narrow lens at 90 deg/s (a drifting track, 64 mm RMS before) the tracker then
+    # lost 7 % of the frames; with half the profiles it kept them all (52 mm RMS).
+    coarse = edge_model(target, tuple(kept), max(1, samples_per_cell // 2))
     fit = None
-    for _ in range(max(iterations, 1)):
-        measured = _measure(image, model, rotation, translation, calibration)
+    iterations = max(iterations, 1)
+    for iteration in range(iterations):
+        measured = _measure(image, model if iteration == iterations - 1 else coarse, rotation, translation,
+                            calibration)
         if measured is None or len(measured[0]) < MIN_PROFILES:
             return None
         offset, jacobian, _ = measured

@@ -205,10 +205,11 @@ def corner_sigma_scale(pose: TargetPose, detections: list[TagDetection], target:
             continue
         tag = target.tag(detection.tag_id)
         sight = camera - tag.center
-        width = quad_width_px(detection.corners)
-        oblique = float(tag.normal @ sight) < cos_limit * float(np.linalg.norm(sight))
-        scale[detection.tag_id] = (options.min_oblique_edge_px / max(width, 1.0)
-                                   if oblique and width < options.min_oblique_edge_px else 1.0)
+        scale[detection.tag_id] = 1.0
+        if float(tag.normal @ sight) < cos_limit * float(np.linalg.norm(sight)):  # oblique
+            width = quad_width_px(detection.corners)
+            if width < options.min_oblique_edge_px:
+                scale[detection.tag_id] = options.min_oblique_edge_px / max(width, 1.0)
     return scale
 
 
