@@ -238,13 +238,14 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
         samples_per_cell = int(np.clip(round(cell_px / PIXELS_PER_PROFILE), *SAMPLES_PER_CELL))
     model = edge_model(target, tuple(kept), samples_per_cell)
     # Coarse to fine: the iterations before the last measure half the profiles (half as
-    # many a cell; they only bring the pose near); the last measures every profile at the
-    # pose it starts from, and the fit is its. A measurement costs ~0.45 ms + 0.55 us a
-    # profile (648 instead of 1188 at 2 m: 0.3 ms less); over the range map's 480 views
-    # the poses moved 0.004 mm (median). One profile a cell was as close there, but behind
-    # the narrow lens at 90 deg/s (a drifting track, 64 mm RMS before) the tracker then
-    # lost 7 % of the frames; with half the profiles it kept them all (52 mm RMS).
-    coarse = edge_model(target, tuple(kept), max(1, samples_per_cell // 2))
+    # many a cell, at least two); they only bring the pose near, and the last measures
+    # every profile at the pose it starts from (the fit is its). A measurement costs
+    # ~0.45 ms + 0.55 us a profile (648 instead of 1188 at 2 m: 0.3 ms less); over the
+    # range map's 480 views the poses moved 0.004 mm (median). One profile a cell was as
+    # close there, but behind the wide lens (its tags get two a cell) agile went 3.4 -> 4.2 mm
+    # RMS and turn_after_init 30.8 -> 36.5 mm, and behind the narrow lens at 90 deg/s the
+    # tracker lost 7 % of the frames (python -m bench intrinsics, tests/test_tracking_*).
+    coarse = edge_model(target, tuple(kept), max(SAMPLES_PER_CELL[0], samples_per_cell // 2))
     fit = None
     iterations = max(iterations, 1)
     for iteration in range(iterations):
@@ -271,14 +272,16 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
 def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
                          calibration: CameraCalibration, max_shift_m: float = 0.05,
                          iterations: int | None = None,
-                         sharp_corner_rms_px: float = SHARP_CORNER_RMS_PX) -> TargetPose:
+                         sharp_corner_rms_px: float = SHARP_CORNER_RMS_PX,
+                         judge_corners: dict[int, np.ndarray] | None = None) -> TargetPose:
     """``pose`` aligned to every cell edge of its tags (or unchanged when that fails or
     moves the camera further than ``max_shift_m``, which a right start never needs).
 
     The aligned pose's ``reproj_rms_px`` is the RMS of the edge profiles' offsets (pixels
     along the edges' normals) it was fitted to; ``residuals_px`` stay the corners'.
     ``sharp_corner_rms_px``: the corners' RMS about the aligned pose on a sharp image of
-    this camera (more is taken for blur)."""
+    this camera (more is taken for blur); ``judge_corners`` (tag id -> (4, 2) pixels): the
+    corners to judge that by, when not the pose's own."""
     if pose.rvec is None or pose.tvec is None:
         return pose
     try:
@@ -298,7 +301,12 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     # ~0.04 px while the pose is 1-3 mm off: agile); the tag corners do, by disagreeing
     # with the aligned pose. As far as they disagree beyond a sharp image's RMS, the
     # covariance is scaled (agile: 84 -> 98 % of the tracker's poses inside 3 sigma).
-    corner_rms = float(np.sqrt(np.mean(residuals**2)))
+    judged = residuals
+    if judge_corners:  # the blur judged by these corners (tag id -> (4, 2)) instead
+        ids = tuple(judge_corners)
+        judged = (np.concatenate([judge_corners[i] for i in ids])
+                  - project_pose(target.corners_of(ids), rvec, tvec, calibration))
+    corner_rms = float(np.sqrt(np.mean(judged**2)))
     covariance = fit.covariance() * max(1.0, corner_rms / sharp_corner_rms_px) ** 2
     return dataclasses.replace(
         pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=covariance,

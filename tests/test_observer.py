@@ -56,3 +56,18 @@ def test_the_search_finds_every_tag_the_library_finds_at_decimate_2(azimuth):
         processor.reset()
         seen = set(processor.process(image, 0, 0).tags_seen)
         assert library <= seen, (azimuth + offset, library, seen)
+
+
+def test_the_masked_search_paints_the_quiet_zone_grey_level_numpy_would_give():
+    """The masked search's white level (the 90th percentile of the region's pixels) comes
+    from a histogram of the grey levels: it must equal numpy's linear percentile, on
+    uniform, constant, two-level and tiny sets of pixels."""
+    from positioning.observer import _grey_percentile
+
+    rng = np.random.default_rng(16)
+    samples = [rng.integers(0, 256, int(n)).astype(np.uint8) for n in rng.integers(1, 5000, 300)]
+    samples += [np.full(17, 200, np.uint8), np.array([0, 255], np.uint8), np.array([7], np.uint8),
+                np.where(rng.random(999) < 0.8, 20, 240).astype(np.uint8)]
+    for values in samples:
+        for q in (10.0, 50.0, 90.0):
+            assert _grey_percentile(values, q) == pytest.approx(np.percentile(values, q), abs=1e-9)
