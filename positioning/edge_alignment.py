@@ -272,16 +272,14 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
 def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
                          calibration: CameraCalibration, max_shift_m: float = 0.05,
                          iterations: int | None = None,
-                         sharp_corner_rms_px: float = SHARP_CORNER_RMS_PX,
-                         judge_corners: dict[int, np.ndarray] | None = None) -> TargetPose:
+                         sharp_corner_rms_px: float = SHARP_CORNER_RMS_PX) -> TargetPose:
     """``pose`` aligned to every cell edge of its tags (or unchanged when that fails or
     moves the camera further than ``max_shift_m``, which a right start never needs).
 
     The aligned pose's ``reproj_rms_px`` is the RMS of the edge profiles' offsets (pixels
     along the edges' normals) it was fitted to; ``residuals_px`` stay the corners'.
     ``sharp_corner_rms_px``: the corners' RMS about the aligned pose on a sharp image of
-    this camera (more is taken for blur); ``judge_corners`` (tag id -> (4, 2) pixels): the
-    corners to judge that by, when not the pose's own."""
+    this camera (more is taken for blur)."""
     if pose.rvec is None or pose.tvec is None:
         return pose
     try:
@@ -301,12 +299,7 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     # ~0.04 px while the pose is 1-3 mm off: agile); the tag corners do, by disagreeing
     # with the aligned pose. As far as they disagree beyond a sharp image's RMS, the
     # covariance is scaled (agile: 84 -> 98 % of the tracker's poses inside 3 sigma).
-    judged = residuals
-    if judge_corners:  # the blur judged by these corners (tag id -> (4, 2)) instead
-        ids = tuple(judge_corners)
-        judged = (np.concatenate([judge_corners[i] for i in ids])
-                  - project_pose(target.corners_of(ids), rvec, tvec, calibration))
-    corner_rms = float(np.sqrt(np.mean(judged**2)))
+    corner_rms = float(np.sqrt(np.mean(residuals**2)))
     covariance = fit.covariance() * max(1.0, corner_rms / sharp_corner_rms_px) ** 2
     return dataclasses.replace(
         pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=covariance,

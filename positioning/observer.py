@@ -277,10 +277,8 @@ class TargetObserver:
             found = self._ours(self._detector.detect(image))
         return found
 
-    def _complete(self, image: np.ndarray, detections: list[TagDetection], pose: Transform,
-                  refine: bool = True) -> list[TagDetection]:
-        """Tags the pose says are in view but the full-frame search missed, if found
-        (their corners refined unless ``refine`` is False)."""
+    def _complete(self, image: np.ndarray, detections: list[TagDetection], pose: Transform) -> list[TagDetection]:
+        """Tags the pose says are in view but the full-frame search missed, if found."""
         have = {d.tag_id for d in detections}
         missing = [r for r in predicted_tag_regions(self.target, self.calibration, pose) if r.tag_id not in have]
         if not missing:
@@ -289,7 +287,7 @@ class TargetObserver:
         self._masked_ids |= {d.tag_id for d in extra}
         if extra:
             self.last_search = f"{self.last_search}+completion"
-        return self._refine(image, extra) if refine else extra
+        return self._refine(image, extra)
 
     def _recover(self, image: np.ndarray, detections: list[TagDetection]):
         """One face found, or faces that disagree (a bad quad with a valid id). From each
@@ -364,7 +362,6 @@ class TargetObserver:
     def _observe(self, image: np.ndarray, seq: int, full_search: bool) -> Observation:
         self._suspects = set()
         self._decoded = {}
-        unrefined: set[int] = set()  # tags of the pose with the library's corners, outside the steady state
         found = self._search(image, full_search)
         if not found:
             return Observation(None, Refusal.NO_TARGET, "no tag of the target in view", (), None, self.last_search)
@@ -384,24 +381,12 @@ class TargetObserver:
             # Search again for the tags the pose says are in view but it did not use
             # (not found, or left out as a bad quad); keep what improves the pose.
             used = [d for d in detections if d.tag_id in outcome.pose.tag_ids]
-            # With the edge alignment a tag found here joins the pose with the library's
-            # corners (the pose is then aligned on its edges; 0.34 ms a tag saved at 2 m),
-            # refined only where the pose leaves it out (a bad quad is dropped by its edges).
-            extra = self._complete(image, used, outcome.pose.T_world_camera, refine=not self.edge_alignment)
+            extra = self._complete(image, used, outcome.pose.T_world_camera)
             if extra:
                 completed = estimate_target_pose(used + extra, self.target, self.calibration, self.options,
                                                  self._prior, with_covariance=False)
-                if self.edge_alignment:
-                    if completed.pose is None or len(completed.pose.tag_ids) < len(used) + len(extra):
-                        extra = self._refine(image, extra)
-                        completed = estimate_target_pose(used + extra, self.target, self.calibration,
-                                                         self.options, self._prior, with_covariance=False)
-                    else:
-                        unrefined = {d.tag_id for d in extra}
                 if completed.pose is not None and len(completed.pose.tag_ids) > len(outcome.pose.tag_ids):
                     outcome, detections = completed, used + extra
-                else:
-                    unrefined = set()
         elif self.last_search == "full" and outcome.refusal in (Refusal.ONE_FACE, Refusal.REPROJECTION,
                                                                  Refusal.OBLIQUE):
             recovered = self._recover(image, detections)
@@ -421,12 +406,9 @@ class TargetObserver:
         by_id = {d.tag_id: d for d in detections}
         corners_px = np.concatenate([by_id[i].corners for i in pose.tag_ids]).astype(np.float64)
         if self.edge_alignment:
-            # Blur is judged by the refined corners where there are some (the library's are
-            # 0.05-0.13 px off an aligned pose on sharp full frames at decimate 3).
-            judged = None if not unrefined else {i: by_id[i].corners for i in pose.tag_ids if i not in unrefined}
             aligned = refine_pose_on_edges(image, pose, self.target, self.calibration,
                                            sharp_corner_rms_px=self._sharp_corner_rms() if steady
-                                           else SHARP_CORNER_RMS_PX, judge_corners=judged)
+                                           else SHARP_CORNER_RMS_PX)
             if aligned is not pose:  # else the alignment failed: the corners' pose stands
                 if steady:
                     self._steady_corner_rms.append(float(np.sqrt(np.mean(aligned.residuals_px**2))))
