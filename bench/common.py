@@ -85,27 +85,39 @@ def previous_tree(commit: str, work: Path, given: str | None = None) -> Iterator
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)
 
 
-def track_in_process(sequence: Path, calibration):
-    """The tracker over a rendered sequence in this process, bundle adjustment in the frame
-    loop (deterministic), the cube's model and nothing else known: its
-    ``positioning.evaluation.RunScore`` against the sequence's ground truth."""
+def in_loop_options():
+    """``ProcessorOptions`` with bundle adjustment in the frame loop: every run the same."""
     from dataclasses import replace
 
-    from drivers.sequence import read_mono_png, read_sequence_index
-    from positioning.evaluation import score_estimates
-    from positioning.target import make_cube
     from positioning.tracking.options import BundleOptions
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-    from positioning.trajectory_io import read_tum
+    from positioning.tracking.processor import ProcessorOptions
 
     options = ProcessorOptions()
-    options = replace(options, tracker=replace(options.tracker, bundle=BundleOptions(background=False)))
-    processor = TrackingProcessor(make_cube(), calibration, options)
+    return replace(options, tracker=replace(options.tracker, bundle=BundleOptions(background=False)))
+
+
+def track_results(sequence: Path, calibration) -> list:
+    """The tracker's ``FrameResult`` for each frame of a rendered sequence, in this process,
+    bundle adjustment in the frame loop (deterministic), the cube's model and nothing else
+    known."""
+    from drivers.sequence import read_mono_png, read_sequence_index
+    from positioning.target import make_cube
+    from positioning.tracking.processor import TrackingProcessor
+
+    processor = TrackingProcessor(make_cube(), calibration, in_loop_options())
     try:
-        results = [processor.process(read_mono_png(e.path), e.stamp_ns, i)
-                   for i, e in enumerate(read_sequence_index(sequence))]
+        return [processor.process(read_mono_png(e.path), e.stamp_ns, i)
+                for i, e in enumerate(read_sequence_index(sequence))]
     finally:
         processor.close()
+
+
+def track_in_process(sequence: Path, calibration):
+    """``track_results``' ``positioning.evaluation.RunScore`` against the sequence's ground truth."""
+    from positioning.evaluation import score_estimates
+    from positioning.trajectory_io import read_tum
+
+    results = track_results(sequence, calibration)
     return score_estimates(read_tum(sequence / "groundtruth.tum"), [r.estimate for r in results])
 
 

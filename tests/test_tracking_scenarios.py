@@ -10,24 +10,18 @@ The previous tracker (commit 9580d93) on these sequences, for the record: turn_a
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from helpers import half_resolution
 
-from drivers.sequence import read_mono_png, read_sequence_index
+from bench.common import in_loop_options, track_results
 from fakes.lenses import lens_calibration
 from fakes.sequence import write_synthetic_sequence
 from positioning.estimator import PoseState
 from positioning.evaluation import score_estimates
-from positioning.target import make_cube
-from positioning.tracking.options import BundleOptions
-from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 from positioning.trajectory_io import read_tum
 
-SYNC = ProcessorOptions()
-SYNC = replace(SYNC, tracker=replace(SYNC.tracker, bundle=BundleOptions(background=False)))
+SYNC = in_loop_options()
 
 
 def replay(tmp_path_factory, name: str, seconds: float | None = None, seed: int = 11, calibration=None,
@@ -39,13 +33,7 @@ def replay(tmp_path_factory, name: str, seconds: float | None = None, seed: int 
     write_synthetic_sequence(out, name, seconds=seconds, seed=seed, calibration=calibration, poses=poses,
                              effects=effects)
     truth = read_tum(out / "groundtruth.tum")
-    processor = TrackingProcessor(make_cube(), calibration, SYNC)
-    results = []
-    try:
-        for i, entry in enumerate(read_sequence_index(out)):
-            results.append(processor.process(read_mono_png(entry.path), entry.stamp_ns, i))
-    finally:
-        processor.close()
+    results = track_results(out, calibration)
     return score_results(results, truth), results, truth
 
 
