@@ -24,11 +24,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import distort, undistort
+from positioning.step_profiles import step_positions
 from positioning.target import KNOWN_FAMILIES
 
 # Library corner index for each of our TL, TR, BR, BL (see the module docstring).
@@ -154,7 +154,7 @@ class TagDetector:
 # The library's own edge refinement leaves ~0.1 px of corner noise on a clean 1280x1024
 # render (a few mm of camera position at 4 m). Every outer edge of a tag is a straight
 # black/white step about one cell wide on each side, so we can do much better: find the
-# step's 50 % crossing on many short profiles across each edge, undistort those points,
+# step on many short profiles across each edge (``step_profiles``), undistort those points,
 # fit a straight line per edge (straight only without distortion), intersect neighbours,
 # and distort the corners back.
 
@@ -165,7 +165,7 @@ MIN_PROFILE_CONTRAST = 25.0  # grey levels between the black border and the whit
 MIN_EDGE_SAMPLES = 6
 
 
-def _edge_points(image_f32: np.ndarray, corners: np.ndarray, half_width_px: float) -> tuple[np.ndarray, np.ndarray]:
+def _edge_points(image: np.ndarray, corners: np.ndarray, half_width_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel points (4, K, 2) of the black-to-white step on K profiles across each
     edge k -> k+1, and which are clean steps (4, K): none on an edge with clean steps
     over less than half its length."""
@@ -175,35 +175,16 @@ def _edge_points(image_f32: np.ndarray, corners: np.ndarray, half_width_px: floa
     fractions = np.linspace(EDGE_END_FRACTION, 1 - EDGE_END_FRACTION, count)
     units = directions / lengths[:, None]
     outward = np.column_stack([units[:, 1], -units[:, 0]])  # corners turn clockwise on screen
-    across = np.arange(-half_width_px, half_width_px + 1e-9, PROFILE_STEP_PX)
+    samples = len(np.arange(-half_width_px, half_width_px + 1e-9, PROFILE_STEP_PX))
+    # Profiles from the black border (inside) out to the white margin, one edge a group.
     base = corners[:, None, :] + fractions[None, :, None] * directions[:, None, :]  # (4, K, 2)
-    # The samples (4, K, M) along each profile, x and y apart (the layout remap reads).
-    map_x, map_y = ((base[:, :, None, axis] + across[None, None, :] * outward[:, None, None, axis])
-                    .astype(np.float32).reshape(4 * count, len(across)) for axis in (0, 1))
-    profiles = cv2.remap(image_f32, map_x, map_y, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE).reshape(4, count, len(across))
-    quarter = max(2, len(across) // 4)
-    dark = profiles[..., :quarter].mean(axis=2)  # inside: the black border
-    bright = profiles[..., -quarter:].mean(axis=2)  # outside: the white margin
-    above = profiles >= ((dark + bright) / 2.0)[..., None]
-    rising = ~above[..., :-1] & above[..., 1:]  # dark-to-bright steps between samples
-    # Keep clean steps only: enough contrast and exactly one crossing (not noise, not a
-    # second edge, not glare or an occluder).
-    good = (bright - dark >= MIN_PROFILE_CONTRAST) & (rising.sum(axis=2) == 1)
-    # The step's position from its area, not from where it crosses 50 %: pixels average
-    # light over their area, which keeps the area of a step (blurred or not) but pulls the
-    # 50 % crossing towards pixel centres by up to 0.08 px. The plateau levels are per
-    # edge (means over its clean profiles), so their noise does not enter each profile.
-    clean = good.sum(axis=1)
-    weights = good / np.maximum(clean, 1)[:, None]
-    dark_level, bright_level = (dark * weights).sum(axis=1), (bright * weights).sum(axis=1)
-    contrast = np.maximum(bright_level - dark_level, 1e-6)
-    # trapezoids: the sum minus half the two end samples
-    total = profiles.sum(axis=2, dtype=np.float64) - 0.5 * (profiles[..., 0] + profiles[..., -1])
-    area = (total - dark_level[:, None] * (len(across) - 1)) / contrast[:, None] * PROFILE_STEP_PX
-    points = base + (across[-1] - area)[..., None] * outward[:, None, :]
+    starts = base - half_width_px * outward[:, None, :]
+    deltas = np.broadcast_to(PROFILE_STEP_PX * outward[:, None, :], base.shape)
+    position, good, clean = step_positions(image, starts.reshape(-1, 2), deltas.reshape(-1, 2), samples,
+                                           np.repeat(np.arange(4), count), 4, MIN_PROFILE_CONTRAST)
+    points = starts + (position * PROFILE_STEP_PX).reshape(4, count, 1) * outward[:, None, :]
     enough = clean >= max(MIN_EDGE_SAMPLES, count // 2)
-    return points, good & enough[:, None]
+    return points, good.reshape(4, count) & enough[:, None]
 
 
 def _fit_lines(points: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -253,15 +234,6 @@ def refine_corners(image: np.ndarray, detection: TagDetection, calibration: Came
     library's quad (occlusion, glare, or a quad the library fitted to the wrong edges
     while still decoding the id): such a detection should not be trusted.
     """
-    # Work on a float copy of the tag's neighbourhood only (a whole frame costs ~1 ms).
-    low = np.floor(detection.corners.min(axis=0)).astype(int) - 12
-    high = np.ceil(detection.corners.max(axis=0)).astype(int) + 13
-    x0, y0 = max(low[0], 0), max(low[1], 0)
-    x1, y1 = min(high[0], image.shape[1]), min(high[1], image.shape[0])
-    if x1 - x0 < 8 or y1 - y0 < 8:
-        return detection
-    image_f32 = image[y0:y1, x0:x1].astype(np.float32)
-    shift = np.array([x0, y0], dtype=np.float64)
     corners = detection.corners.copy()
     for _ in range(passes):
         sides = corners[_NEXT] - corners
@@ -269,11 +241,9 @@ def refine_corners(image: np.ndarray, detection: TagDetection, calibration: Came
         half_width = min(0.4 * size / cells, 4.0)
         if half_width < 1.0:
             return detection  # cells under ~2.5 px: the library's corners are as good
-        points, use = _edge_points(image_f32, corners - shift, half_width)
+        points, use = _edge_points(image, corners, half_width)
         if calibration is not None:
-            points = undistort(points.reshape(-1, 2) + shift, calibration).reshape(points.shape)
-        else:
-            points = points + shift
+            points = undistort(points.reshape(-1, 2), calibration).reshape(points.shape)
         lines = _fit_lines(points, use)
         new = None if lines is None else _corners_of(*lines)
         if new is None:

@@ -27,6 +27,7 @@ from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_pose, project_with_jacobian
 from positioning.corner_pose import TargetPose
 from positioning.geometry import Transform
+from positioning.step_profiles import step_positions
 from positioning.tag_bits import grid_to_world, tag_edges
 from positioning.target import Target
 
@@ -167,36 +168,13 @@ def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translat
         return None
     index = np.flatnonzero(usable)
     steps = int(np.ceil(half[index].max() / PROFILE_STEP_PX))
-    unit = np.arange(-steps, steps + 1) / steps  # -1 .. 1
-    offsets_px = unit[None, :] * half[index, None]  # (K, S)
-    centres, reach = pixels[index], half[index, None]
-    x0, y0 = np.maximum(np.floor((centres - reach).min(axis=0)).astype(int) - 2, 0)
-    x1, y1 = np.ceil((centres + reach).max(axis=0)).astype(int) + 3
-    x1, y1 = min(x1, image.shape[1]), min(y1, image.shape[0])
-    crop = image[y0:y1, x0:x1].astype(np.float32)
-    along_x = (centres[:, 0:1] - x0 + offsets_px * direction[index, 0:1]).astype(np.float32)
-    along_y = (centres[:, 1:2] - y0 + offsets_px * direction[index, 1:2]).astype(np.float32)
-    profiles = cv2.remap(crop, along_x, along_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    quarter = max(2, profiles.shape[1] // 4)
-    dark = profiles[:, :quarter].mean(axis=1, dtype=np.float64)
-    bright = profiles[:, -quarter:].mean(axis=1, dtype=np.float64)
-    above = profiles >= ((dark + bright) / 2.0)[:, None].astype(np.float32)
-    crossings = (above[:, 1:] != above[:, :-1]).sum(axis=1)
-    good = (bright - dark >= MIN_CONTRAST) & (crossings == 1)
-    # Plateau levels per edge run (its black and white cells), so their noise averages out.
+    # Profiles from the black cell to the white one, 2 * steps + 1 samples over 2 * half.
+    reach, spacing = half[index, None] * direction[index], half[index] / steps
     runs = model.run_index[index]
-    weights = good.astype(np.float64)
-    totals = np.bincount(runs, weights, minlength=int(runs.max()) + 1)
-    dark_run = np.bincount(runs, weights * dark, minlength=len(totals)) / np.maximum(totals, 1)
-    bright_run = np.bincount(runs, weights * bright, minlength=len(totals)) / np.maximum(totals, 1)
-    dark_level, bright_level = dark_run[runs], bright_run[runs]
-    contrast = np.maximum(bright_level - dark_level, 1e-6)
-    # Area of the normalised profile (trapezoids): sum minus half the two end samples.
-    total = profiles.sum(axis=1, dtype=np.float64) - 0.5 * (profiles[:, 0] + profiles[:, -1])
-    spacing = half[index] / steps
-    area = (total - dark_level * (2 * steps)) / contrast * spacing
-    offset = (half[index] - area) * cosine[index]  # the step, along the normal from the model's edge
-    good &= totals[runs] >= 2
+    position, good, clean = step_positions(image, pixels[index] - reach, reach / steps, 2 * steps + 1,
+                                           runs, int(runs.max()) + 1, MIN_CONTRAST)
+    offset = (position * spacing - half[index]) * cosine[index]  # the step, along the normal from the model's edge
+    good &= clean[runs] >= 2
     rows = np.flatnonzero(good)
     kept = index[rows]
     # d(offset)/d(omega, delta_t): the projected edge point moves by J (omega x X_c + delta_t).

@@ -23,7 +23,7 @@ UDEV_RULE = REPO / "systemd" / "99-cubeloc-cameras.rules"
 # "Sandboxing", "System Call Filtering", "Capabilities", "Credentials").
 HARDENING = re.compile(
     r"^(User|Group|UMask|DevicePolicy|DeviceAllow|NoNewPrivileges|CapabilityBoundingSet|AmbientCapabilities"
-    r"|Protect\w+|Private\w+|ReadWritePaths|ReadOnlyPaths|InaccessiblePaths|StateDirectory|ConfigurationDirectory"
+    r"|Protect\w+|Private\w+|ReadWritePaths|ReadOnlyPaths|InaccessiblePaths|StateDirectory|CacheDirectory|ConfigurationDirectory"
     r"|Restrict\w+|LockPersonality|RemoveIPC|SystemCall\w+|MemoryDenyWriteExecute|IPAddress\w+|ProcSubset"
     r"|KeyringMode|DynamicUser|SupplementaryGroups)$"
 )

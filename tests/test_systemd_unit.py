@@ -46,6 +46,8 @@ def test_unit_has_what_the_daemon_relies_on():
     assert service["Type"] == "notify" and service["NotifyAccess"] == "main"
     assert service["Restart"] == "on-failure" and float(service["RestartSec"]) > 0
     assert "PYTHONUNBUFFERED=1" in service["Environment"]
+    # ProtectSystem=strict: numba's compiled kernels need a writable cache of their own
+    assert f"NUMBA_CACHE_DIR=/var/cache/{service['CacheDirectory']}/" in service["Environment"]
     assert service["User"] == "cubeloc" and service["DeviceAllow"].startswith("char-usb_device")
     assert "PrivateNetwork" not in service  # GigE cameras and Zenoh need the host network
     assert "--config /etc/cubeloc/cubeloc.toml" in service["ExecStart"]

@@ -1,0 +1,87 @@
+"""The step-profile kernel under the corner refinement and the edge alignment."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from positioning.step_profiles import step_positions
+
+DARK, BRIGHT = 30.0, 210.0
+
+
+def _edge_image(normal_deg: float, offset: float, size: int = 40) -> np.ndarray:
+    """A straight dark-to-bright edge through (20, 20) + offset * normal, each pixel the
+    mean over its area (16x16 supersampled), as a camera sees it."""
+    normal = np.array([np.cos(np.radians(normal_deg)), np.sin(np.radians(normal_deg))])
+    sub = (np.arange(16) + 0.5) / 16 - 0.5
+    ys, xs = np.mgrid[0:size, 0:size].astype(np.float64)
+    x = xs[:, :, None, None] + sub[None, None, None, :]
+    y = ys[:, :, None, None] + sub[None, None, :, None]
+    bright = ((x - 20) * normal[0] + (y - 20) * normal[1] - offset) > 0
+    return np.round(DARK + (BRIGHT - DARK) * bright.mean(axis=(2, 3))).astype(np.uint8)
+
+
+@pytest.mark.parametrize("normal_deg", [0.0, 90.0, 33.0, 200.0])
+@pytest.mark.parametrize("offset", [-0.37, 0.0, 0.25, 0.61])
+def test_a_step_is_found_where_it_is_to_a_hundredth_of_a_pixel(normal_deg, offset):
+    image = _edge_image(normal_deg, offset)
+    normal = np.array([np.cos(np.radians(normal_deg)), np.sin(np.radians(normal_deg))])
+    along = np.array([-normal[1], normal[0]])
+    # 9 profiles along the edge, each from 3 px on the dark side to 3 px on the bright one
+    centres = np.array([20.0, 20.0]) + np.linspace(-6, 6, 9)[:, None] * along
+    starts = centres - 3.0 * normal
+    deltas = np.tile(0.25 * normal, (9, 1))
+    position, clean, per_group = step_positions(image, starts, deltas, 25, np.zeros(9, int), 1, 25.0)
+    assert clean.all() and per_group.tolist() == [9]
+    found = position * 0.25 - 3.0  # along the normal from the profile's centre
+    # Axis-aligned, one grey level of rounding is ~0.006 px of a 180-level step; oblique,
+    # bilinear sampling across the pixel grid adds up to ~0.06 px a profile, which the
+    # line fit or the pose averages out along the edge (mean within 0.01 px).
+    axis_aligned = normal_deg % 90.0 == 0.0
+    assert np.abs(found - offset).max() < (0.01 if axis_aligned else 0.08), found
+    assert abs(found.mean() - offset) < 0.01, found
+
+
+def test_profiles_that_are_not_one_clean_step_are_left_out():
+    image = _edge_image(0.0, 0.0)
+    image[:, 14:16] = BRIGHT  # a bright stripe on the dark side, crossed twice more
+    starts = np.array([[17.0, 10.0], [12.0, 30.0], [17.0, 30.0]])
+    deltas = np.tile([0.25, 0.0], (3, 1))
+    low = image.copy()
+    low[25:35] = (DARK + 10.0 * (image[25:35] > 100)).astype(np.uint8)  # 10 grey levels of step
+    position, clean, per_group = step_positions(image, starts[:2], deltas[:2], 25, np.array([0, 1]), 2, 25.0)
+    assert clean.tolist() == [True, False] and per_group.tolist() == [1, 0]
+    _, clean, _ = step_positions(low, starts[2:], deltas[2:], 25, np.zeros(1, int), 1, 25.0)
+    assert not clean[0]
+
+
+def test_the_plateau_levels_are_pooled_over_a_group():
+    """A profile that starts on a brighter patch of the dark side is pulled to its group's
+    dark level, so the patch moves its step less than it moves a profile on its own."""
+    image = _edge_image(0.0, 0.0)
+    image[20:24, :18] += 20  # brighter dark side under the second profile only
+    starts = np.array([[17.0, 10.0], [17.0, 21.5], [17.0, 30.0]])
+    deltas = np.tile([0.25, 0.0], (3, 1))
+    alone, _, _ = step_positions(image, starts, deltas, 25, np.array([0, 1, 2]), 3, 25.0)
+    pooled, _, _ = step_positions(image, starts, deltas, 25, np.zeros(3, int), 1, 25.0)
+    assert abs(alone[0] - pooled[0]) > 0.05 and abs(alone[0] - alone[2]) < 1e-9
+    assert pooled[1] != alone[1]
+
+
+def test_it_runs_where_no_compiled_kernel_can_be_cached(tmp_path):
+    """A read-only install without NUMBA_CACHE_DIR: compiled in the process, with a warning."""
+    env = dict(os.environ, NUMBA_CACHE_LOCATOR_CLASSES="ZipCacheLocator")  # finds no folder
+    code = ("import warnings, numpy as np; warnings.simplefilter('always')\n"
+            "from positioning.step_profiles import step_positions\n"
+            "img = np.zeros((20, 20), np.uint8); img[:, 10:] = 200\n"
+            "p, c, _ = step_positions(img, [[6.0, 5.0]], [[0.25, 0.0]], 33, [0], 1, 25.0)\n"
+            "print(float(p[0]) * 0.25 + 6.0, bool(c[0]))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["9.5", "True"]
+    assert "without a disk cache" in result.stderr and "NUMBA_CACHE_DIR" in result.stderr
