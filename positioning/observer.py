@@ -31,6 +31,7 @@ import numpy as np
 import structlog
 
 from calib.camera_info import CameraCalibration
+from positioning import step_profiles
 from positioning.camera_model import project, project_pose
 from positioning.corner_pose import TargetPose, pose_covariance
 from positioning.detection import (
@@ -205,6 +206,8 @@ class TargetObserver:
         # the library's corners' RMS about the aligned pose on the last steady frames: what
         # a sharp image gives with this camera (kept through reset: it is the lens's)
         self._steady_corner_rms: collections.deque[float] = collections.deque(maxlen=SHARP_HISTORY_FRAMES)
+        if edge_refinement or edge_alignment:
+            step_profiles.warm_up()  # Mono8 frames: compiled now, not on the first frame
 
     def reset(self) -> None:
         self._scale_message = ""

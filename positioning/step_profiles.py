@@ -12,8 +12,11 @@ pulls the 50 % crossing towards pixel centres by up to 0.08 px. The plateau leve
 per group (an edge, or a run of cell edges: means over its clean profiles), so their
 noise does not enter each profile.
 
-Compiled with numba on first use (cached on disk: ``NUMBA_CACHE_DIR`` where the package
-folder is read-only, as under systemd). The profiles are a few thousand short loops of
+Compiled with numba (cached on disk: ``NUMBA_CACHE_DIR`` where the package folder is
+read-only, as under systemd) by ``warm_up``, which ``TargetObserver`` calls when it is
+built, so that no frame pays the compilation (~2.5 s, holding the GIL) or the cache load
+(~0.1 s). The image always reaches the kernel as a read-only view: numba compiles a
+read-only and a writable array apart, and camera frames come both ways. The profiles are a few thousand short loops of
 arithmetic; in numpy they were some thirty array operations of 20-100 us each, which made
 this measurement most of the corner refinement's and the edge alignment's time.
 """
@@ -105,6 +108,14 @@ def step_positions(image: np.ndarray, starts: np.ndarray, deltas: np.ndarray, sa
     in each group (group_count,)). A position is meaningful for clean profiles only."""
     if samples < 4:
         raise ValueError(f"a profile needs at least 4 samples, not {samples}")
-    return _compiled()(np.ascontiguousarray(image), np.ascontiguousarray(starts, np.float64),
+    image = np.ascontiguousarray(image).view()
+    image.flags.writeable = False  # one compiled signature per pixel type (see the module's docstring)
+    return _compiled()(image, np.ascontiguousarray(starts, np.float64),
                        np.ascontiguousarray(deltas, np.float64), int(samples),
                        np.ascontiguousarray(groups, np.int64), int(group_count), float(min_contrast))
+
+
+def warm_up(dtype=np.uint8) -> None:
+    """Compile (or load from the disk cache) the kernel for images of ``dtype`` now."""
+    step_positions(np.zeros((4, 4), dtype), np.zeros((1, 2)), np.full((1, 2), 0.5), 4,
+                   np.zeros(1, np.int64), 1, 1.0)

@@ -6,9 +6,11 @@ import os
 import subprocess
 import sys
 
+import numba
 import numpy as np
 import pytest
 
+from positioning import step_profiles
 from positioning.step_profiles import step_positions
 
 DARK, BRIGHT = 30.0, 210.0
@@ -85,3 +87,32 @@ def test_it_runs_where_no_compiled_kernel_can_be_cached(tmp_path):
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["9.5", "True"]
     assert "without a disk cache" in result.stderr and "NUMBA_CACHE_DIR" in result.stderr
+
+
+def test_read_only_and_writable_frames_share_one_compiled_kernel():
+    """Camera buffers arrive read-only, synthetic frames writable: numba types them apart,
+    and a second compilation on a live frame held the GIL ~2.5 s."""
+    writable = _edge_image(0.0, 0.0).astype(np.uint8)
+    read_only = np.frombuffer(writable.tobytes(), np.uint8).reshape(writable.shape)
+    assert not read_only.flags.writeable
+    starts, deltas = np.array([[17.0, 10.0]]), np.array([[0.25, 0.0]])
+    a = step_positions(writable, starts, deltas, 25, np.zeros(1, int), 1, 25.0)
+    b = step_positions(read_only, starts, deltas, 25, np.zeros(1, int), 1, 25.0)
+    assert a[0][0] == b[0][0] and a[1][0] and writable.flags.writeable
+    uint8_kernels = [s for s in step_profiles._compiled().signatures if s[0].dtype == numba.uint8]
+    assert len(uint8_kernels) == 1, uint8_kernels
+
+
+def test_a_target_observer_has_the_kernel_ready_before_its_first_frame():
+    code = ("from calib.camera_info import CameraCalibration\n"
+            "from positioning import step_profiles\n"
+            "from positioning.observer import TargetObserver\n"
+            "from positioning.target import make_cube\n"
+            "import numpy as np\n"
+            "assert step_profiles._compiled.cache_info().currsize == 0\n"
+            "calib = CameraCalibration(1280, 1024, np.array([[900.0, 0, 640], [0, 900.0, 512], [0, 0, 1]]), np.zeros(5))\n"
+            "TargetObserver(make_cube(), calib)\n"
+            "print(len(step_profiles._compiled().signatures))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["1"]
