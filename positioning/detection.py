@@ -27,7 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.camera_info import CameraCalibration
+from positioning import step_profiles
 from positioning.camera_model import distort, undistort
+from positioning.jit import compiled
 from positioning.step_profiles import step_positions
 from positioning.target import KNOWN_FAMILIES
 
@@ -181,34 +183,82 @@ def _edge_points(image: np.ndarray, corners: np.ndarray, half_width_px: float) -
     starts = base - half_width_px * outward[:, None, :]
     deltas = np.broadcast_to(PROFILE_STEP_PX * outward[:, None, :], base.shape)
     position, good, clean = step_positions(image, starts.reshape(-1, 2), deltas.reshape(-1, 2), samples,
-                                           np.repeat(np.arange(4), count), 4, MIN_PROFILE_CONTRAST)
+                                           np.repeat(np.arange(4), count), 4, MIN_PROFILE_CONTRAST,
+                                           rising_only=True)
     points = starts + (position * PROFILE_STEP_PX).reshape(4, count, 1) * outward[:, None, :]
     enough = clean >= max(MIN_EDGE_SAMPLES, count // 2)
     return points, good.reshape(4, count) & enough[:, None]
 
 
+def _fit(points, use, min_samples):
+    """The compiled loop under ``_fit_lines``: (centre (4, 2), direction (4, 2), fitted)."""
+    edges, count = use.shape
+    use = use.copy()
+    centre = np.zeros((4, 2))
+    direction = np.zeros((4, 2))
+    distance = np.empty(count)
+    for _ in range(2):
+        changed = False
+        for e in range(edges):
+            n = 0
+            cx = 0.0
+            cy = 0.0
+            for k in range(count):
+                if use[e, k]:
+                    n += 1
+                    cx += points[e, k, 0]
+                    cy += points[e, k, 1]
+            if n < min_samples:
+                return centre, direction, False
+            cx /= n
+            cy /= n
+            sxx = 0.0
+            syy = 0.0
+            sxy = 0.0
+            for k in range(count):
+                if use[e, k]:
+                    dx, dy = points[e, k, 0] - cx, points[e, k, 1] - cy
+                    sxx += dx * dx
+                    syy += dy * dy
+                    sxy += dx * dy
+            # Direction of the largest spread of a 2x2 scatter matrix, in closed form.
+            angle = 0.5 * np.arctan2(2.0 * sxy / n, (sxx - syy) / n)
+            ux, uy = np.cos(angle), np.sin(angle)
+            spread = 0.0
+            for k in range(count):
+                distance[k] = abs(-(points[e, k, 0] - cx) * uy + (points[e, k, 1] - cy) * ux)
+                if use[e, k]:
+                    spread += distance[k]
+            spread = 1.25 * spread / n + 1e-12  # ~sigma for Gaussian scatter
+            for k in range(count):
+                if use[e, k] and distance[k] > 3.0 * spread:
+                    use[e, k] = False
+                    changed = True
+            centre[e, 0], centre[e, 1] = cx, cy
+            direction[e, 0], direction[e, 1] = ux, uy
+        if not changed:
+            break
+    return centre, direction, True
+
+
+_compiled_fit = compiled(_fit)  # see positioning/jit.py
+
+
 def _fit_lines(points: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(points (4, 2), unit directions (4, 2)) of the total-least-squares lines through
-    the ``use``d points (4, K) of each edge's points (4, K, 2), after one outlier pass;
-    None when an edge has fewer than ``MIN_EDGE_SAMPLES``."""
-    for _ in range(2):
-        count = use.sum(axis=1)
-        if count.min() < MIN_EDGE_SAMPLES:
-            return None
-        weight = use / count[:, None]
-        centre = np.einsum("kn,knd->kd", weight, points)
-        dx, dy = points[..., 0] - centre[:, 0:1], points[..., 1] - centre[:, 1:2]
-        sxx, syy, sxy = (weight * dx * dx).sum(axis=1), (weight * dy * dy).sum(axis=1), (weight * dx * dy).sum(axis=1)
-        # Direction of the largest spread of a 2x2 scatter matrix, in closed form.
-        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-        direction = np.column_stack([np.cos(angle), np.sin(angle)])
-        distance = np.abs(dx * -direction[:, 1:2] + dy * direction[:, 0:1])
-        spread = 1.25 * (weight * distance).sum(axis=1) + 1e-12  # ~sigma for Gaussian scatter
-        keep = use & (distance <= 3.0 * spread[:, None])
-        if np.array_equal(keep, use):
-            break
-        use = keep
-    return centre, direction
+    the ``use``d points (4, K) of each edge's points (4, K, 2), after one outlier pass
+    (points further than 3x 1.25x their mean distance, ~3 sigma); None when an edge has
+    fewer than ``MIN_EDGE_SAMPLES``."""
+    centre, direction, fitted = _compiled_fit()(np.ascontiguousarray(points, np.float64),
+                                                np.ascontiguousarray(use, np.bool_), MIN_EDGE_SAMPLES)
+    return (centre, direction) if fitted else None
+
+
+def compile_kernels() -> None:
+    """Compile (or load from the disk cache) the edge refinement's kernels now, for Mono8
+    images (the edge alignment's is the step profiles')."""
+    step_profiles.warm_up()
+    _fit_lines(np.zeros((4, MIN_EDGE_SAMPLES, 2)), np.ones((4, MIN_EDGE_SAMPLES), bool))
 
 
 def _corners_of(centre: np.ndarray, direction: np.ndarray) -> np.ndarray | None:

@@ -6,30 +6,32 @@ across every cell edge). Each profile has the same number of samples, from its o
 point in its own steps (pixels, bilinear, the border replicated). A profile is a clean
 step when its two end quarters differ by at least ``min_contrast`` grey levels and it
 crosses their mid-level exactly once (not noise, not a second edge, not glare or an
-occluder). The step's position comes from its area, not from where it crosses 50 %:
-pixels average light over their area, which keeps the area of a step (blurred or not) but
-pulls the 50 % crossing towards pixel centres by up to 0.08 px. The plateau levels are
+occluder); with ``rising_only`` (the corner refinement) only its dark-to-bright crossings
+are counted, so that a profile running on past the white margin into something dark
+still counts (steep faces: such an edge of a tag seen at 70 deg had no clean profile
+left, and the range map lost two of its two-face poses when both counted every crossing).
+The step's position comes from its area, not from where it crosses 50 %: pixels average
+light over their area, which keeps the area of a step (blurred or not) but pulls the 50 %
+crossing towards pixel centres by up to 0.08 px. The plateau levels are
 per group (an edge, or a run of cell edges: means over its clean profiles), so their
 noise does not enter each profile.
 
-Compiled with numba (cached on disk: ``NUMBA_CACHE_DIR`` where the package folder is
-read-only, as under systemd) by ``warm_up``, which ``TargetObserver`` calls when it is
-built, so that no frame pays the compilation (~2.5 s, holding the GIL) or the cache load
-(~0.1 s). The image always reaches the kernel as a read-only view: numba compiles a
-read-only and a writable array apart, and camera frames come both ways. The profiles are a few thousand short loops of
-arithmetic; in numpy they were some thirty array operations of 20-100 us each, which made
-this measurement most of the corner refinement's and the edge alignment's time.
+Compiled with numba (``positioning/jit.py``; ``warm_up`` compiles it before the first
+frame). The image always reaches the kernel as a read-only view: numba compiles a
+read-only and a writable array apart, and camera frames come both ways. The profiles are
+a few thousand short loops of arithmetic; in numpy they were some thirty array operations
+of 20-100 us each, which made this measurement most of the corner refinement's and the
+edge alignment's time; compiled, 1188 profiles of 15 samples take ~0.2 ms.
 """
 
 from __future__ import annotations
 
-import functools
-import warnings
-
 import numpy as np
 
+from positioning.jit import compiled
 
-def _steps(image, starts, deltas, samples, groups, group_count, min_contrast):
+
+def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, rising_only):
     """(position (K,) in samples from each start, clean (K,), clean profiles a group)."""
     height, width = image.shape
     count = starts.shape[0]
@@ -60,7 +62,8 @@ def _steps(image, starts, deltas, samples, groups, group_count, min_contrast):
         crossings = 0
         area = profile[0]
         for s in range(1, samples):
-            crossings += (profile[s - 1] >= middle) != (profile[s] >= middle)
+            before, after = profile[s - 1] >= middle, profile[s] >= middle
+            crossings += (after and not before) if rising_only else before != after
             area += profile[s]
         dark[k], bright[k] = lo, hi
         total[k] = area - 0.5 * (profile[0] + profile[samples - 1])  # trapezoids
@@ -84,21 +87,11 @@ def _steps(image, starts, deltas, samples, groups, group_count, min_contrast):
     return position, clean, per_group
 
 
-@functools.cache
-def _compiled():
-    """The kernel, compiled (~2.5 s) or loaded from numba's disk cache (~0.1 s)."""
-    import numba  # imported on first use: ~0.6 s, which commands without poses do not pay
-
-    try:
-        return numba.njit(cache=True, nogil=True)(_steps)
-    except RuntimeError as error:  # no writable cache folder: compile in every process
-        warnings.warn(f"step profiles compiled without a disk cache ({error}); set NUMBA_CACHE_DIR "
-                      "to a writable folder to start faster", RuntimeWarning, stacklevel=2)
-        return numba.njit(cache=False, nogil=True)(_steps)
+_compiled = compiled(_steps)  # see positioning/jit.py
 
 
 def step_positions(image: np.ndarray, starts: np.ndarray, deltas: np.ndarray, samples: int,
-                   groups: np.ndarray, group_count: int, min_contrast: float
+                   groups: np.ndarray, group_count: int, min_contrast: float, rising_only: bool = False
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Steps along K profiles of ``samples`` samples: sample s of profile k is at
     ``starts[k] + s * deltas[k]`` (pixels) in ``image`` (2-D, any real type). ``groups``
@@ -112,7 +105,8 @@ def step_positions(image: np.ndarray, starts: np.ndarray, deltas: np.ndarray, sa
     image.flags.writeable = False  # one compiled signature per pixel type (see the module's docstring)
     return _compiled()(image, np.ascontiguousarray(starts, np.float64),
                        np.ascontiguousarray(deltas, np.float64), int(samples),
-                       np.ascontiguousarray(groups, np.int64), int(group_count), float(min_contrast))
+                       np.ascontiguousarray(groups, np.int64), int(group_count), float(min_contrast),
+                       bool(rising_only))
 
 
 def warm_up(dtype=np.uint8) -> None:

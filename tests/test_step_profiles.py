@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from positioning import step_profiles
+from positioning.detection import _fit_lines
 from positioning.step_profiles import step_positions
 
 DARK, BRIGHT = 30.0, 210.0
@@ -109,10 +110,49 @@ def test_a_target_observer_has_the_kernel_ready_before_its_first_frame():
             "from positioning.observer import TargetObserver\n"
             "from positioning.target import make_cube\n"
             "import numpy as np\n"
-            "assert step_profiles._compiled.cache_info().currsize == 0\n"
+            "from positioning import detection\n"
+            "assert step_profiles._compiled.cache_info().currsize == detection._compiled_fit.cache_info().currsize == 0\n"
             "calib = CameraCalibration(1280, 1024, np.array([[900.0, 0, 640], [0, 900.0, 512], [0, 0, 1]]), np.zeros(5))\n"
             "TargetObserver(make_cube(), calib)\n"
-            "print(len(step_profiles._compiled().signatures))\n")
+            "print(len(step_profiles._compiled().signatures), len(detection._compiled_fit().signatures))\n")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == ["1"]
+    assert result.stdout.split() == ["1", "1"]
+
+
+def test_the_edge_line_fit_is_total_least_squares_after_one_outlier_pass():
+    """``detection._fit_lines`` (compiled): each edge's line through its points, the
+    direction of their largest spread, a point ~3 sigma off left out; None below
+    MIN_EDGE_SAMPLES points on an edge."""
+    rng = np.random.default_rng(4)
+    along = np.linspace(0.0, 60.0, 40)
+    angles = np.radians([10.0, 100.0, 190.0, 280.0])
+    points = np.stack([[200.0, 300.0] + along[:, None] * [np.cos(a), np.sin(a)] for a in angles])
+    normals = np.stack([[-np.sin(a), np.cos(a)] for a in angles])
+    # bounded noise: within 1.9x its mean distance, so only the planted outlier goes
+    points += rng.uniform(-0.03, 0.03, (4, 40, 1)) * normals[:, None, :]
+    points[1, 7] += 1.5 * normals[1]  # one step found on the wrong edge
+    use = np.ones((4, 40), bool)
+    centre, direction = _fit_lines(points, use)
+    for e in range(4):
+        kept = np.arange(40) != 7 if e == 1 else np.arange(40) >= 0
+        expected = points[e, kept].mean(axis=0)
+        _, _, vt = np.linalg.svd(points[e, kept] - expected)
+        assert np.allclose(centre[e], expected, atol=1e-9)
+        assert abs(abs(direction[e] @ vt[0]) - 1.0) < 1e-12
+    assert abs(abs(direction[1] @ [np.cos(angles[1]), np.sin(angles[1])]) - 1.0) < 1e-5
+    use[2, 5:] = False  # 5 points left on one edge
+    assert _fit_lines(points, use) is None
+
+
+def test_with_rising_only_a_profile_may_run_on_into_something_dark():
+    """The corner refinement's profiles cross a tag's white margin and, on a steep face,
+    run on into what lies beyond it: its step still counts (rising_only); the edge
+    alignment's profiles, across a cell edge, must cross once either way."""
+    image = _edge_image(0.0, 0.0)
+    image[:, 23:] = DARK  # dark again 3 px past the edge
+    starts, deltas = np.array([[17.0, 10.0], [17.0, 30.0]]), np.tile([0.25, 0.0], (2, 1))
+    strict = step_positions(image, starts, deltas, 25, np.zeros(2, int), 1, 25.0)
+    rising = step_positions(image, starts, deltas, 25, np.zeros(2, int), 1, 25.0, rising_only=True)
+    assert not strict[1].any()
+    assert rising[1].all()
