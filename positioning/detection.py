@@ -191,11 +191,11 @@ def _edge_points(image: np.ndarray, corners: np.ndarray, half_width_px: float) -
 
 
 def _fit(points, use, min_samples):
-    """The compiled loop under ``_fit_lines``: (centre (4, 2), direction (4, 2), fitted)."""
+    """The compiled loop under ``_fit_lines``: (centre (E, 2), direction (E, 2), fitted)."""
     edges, count = use.shape
     use = use.copy()
-    centre = np.zeros((4, 2))
-    direction = np.zeros((4, 2))
+    centre = np.zeros((edges, 2))
+    direction = np.zeros((edges, 2))
     distance = np.empty(count)
     for _ in range(2):
         changed = False

@@ -12,9 +12,9 @@ still counts (steep faces: such an edge of a tag seen at 70 deg had no clean pro
 left, and the range map lost two of its two-face poses when both counted every crossing).
 The step's position comes from its area, not from where it crosses 50 %: pixels average
 light over their area, which keeps the area of a step (blurred or not) but pulls the 50 %
-crossing towards pixel centres by up to 0.08 px. The plateau levels are
-per group (an edge, or a run of cell edges: means over its clean profiles), so their
-noise does not enter each profile.
+crossing towards pixel centres by up to 0.08 px. The plateau levels are per group (an
+edge, or a run of cell edges: means over its clean profiles), so their noise does not
+enter each profile.
 
 Compiled with numba (``positioning/jit.py``; ``warm_up`` compiles it before the first
 frame). The image always reaches the kernel as a read-only view: numba compiles a
