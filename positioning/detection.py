@@ -27,9 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning import step_profiles
 from positioning.camera_model import distort, undistort
-from positioning.jit import compiled
+from positioning.jit import compiled, read_only
 from positioning.step_profiles import step_positions
 from positioning.target import KNOWN_FAMILIES
 
@@ -167,25 +166,48 @@ MIN_PROFILE_CONTRAST = 25.0  # grey levels between the black border and the whit
 MIN_EDGE_SAMPLES = 6
 
 
+def _profile_layout(corners, half_width, step_px, end_fraction, min_samples):
+    """The compiled loop under ``_edge_points``: K profiles across each edge k -> k+1
+    (K from the shortest edge, less its ends), from the black border (inside) out to the
+    white margin. Returns (starts (4K, 2), deltas (4K, 2), samples a profile, K)."""
+    shortest = np.inf
+    for k in range(4):
+        shortest = min(shortest, np.hypot(corners[(k + 1) % 4, 0] - corners[k, 0],
+                                          corners[(k + 1) % 4, 1] - corners[k, 1]))
+    count = max(min_samples, int(shortest * (1 - 2 * end_fraction)))
+    samples = int(np.ceil((2 * half_width + 1e-9) / step_px))  # as np.arange(-h, h + 1e-9, step)
+    starts = np.empty((4 * count, 2))
+    deltas = np.empty((4 * count, 2))
+    for k in range(4):
+        dx, dy = corners[(k + 1) % 4, 0] - corners[k, 0], corners[(k + 1) % 4, 1] - corners[k, 1]
+        length = np.hypot(dx, dy)
+        out_x, out_y = dy / length, -dx / length  # corners turn clockwise on screen
+        for j in range(count):
+            fraction = end_fraction + (1 - 2 * end_fraction) * j / (count - 1)
+            row = k * count + j
+            starts[row, 0] = corners[k, 0] + fraction * dx - half_width * out_x
+            starts[row, 1] = corners[k, 1] + fraction * dy - half_width * out_y
+            deltas[row, 0], deltas[row, 1] = step_px * out_x, step_px * out_y
+    return starts, deltas, samples, count
+
+
+def _warm_up_layout() -> None:
+    _edge_points(np.zeros((16, 16), np.uint8), np.array([[4.0, 4.0], [12.0, 4.0], [12.0, 12.0], [4.0, 12.0]]), 1.0)
+
+
+_compiled_layout = compiled(_profile_layout, _warm_up_layout)  # see positioning/jit.py
+
+
 def _edge_points(image: np.ndarray, corners: np.ndarray, half_width_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel points (4, K, 2) of the black-to-white step on K profiles across each
     edge k -> k+1, and which are clean steps (4, K): none on an edge with clean steps
-    over less than half its length."""
-    directions = corners[_NEXT] - corners
-    lengths = np.hypot(directions[:, 0], directions[:, 1])
-    count = max(MIN_EDGE_SAMPLES, int(float(lengths.min()) * (1 - 2 * EDGE_END_FRACTION)))
-    fractions = np.linspace(EDGE_END_FRACTION, 1 - EDGE_END_FRACTION, count)
-    units = directions / lengths[:, None]
-    outward = np.column_stack([units[:, 1], -units[:, 0]])  # corners turn clockwise on screen
-    samples = len(np.arange(-half_width_px, half_width_px + 1e-9, PROFILE_STEP_PX))
-    # Profiles from the black border (inside) out to the white margin, one edge a group.
-    base = corners[:, None, :] + fractions[None, :, None] * directions[:, None, :]  # (4, K, 2)
-    starts = base - half_width_px * outward[:, None, :]
-    deltas = np.broadcast_to(PROFILE_STEP_PX * outward[:, None, :], base.shape)
-    position, good, clean = step_positions(image, starts.reshape(-1, 2), deltas.reshape(-1, 2), samples,
-                                           np.repeat(np.arange(4), count), 4, MIN_PROFILE_CONTRAST,
-                                           rising_only=True)
-    points = starts + (position * PROFILE_STEP_PX).reshape(4, count, 1) * outward[:, None, :]
+    over less than half its length. The layout compiled (``_profile_layout``): a tag of
+    ~130 px in 0.12-0.20 ms with its step profiles, 0.25-0.30 ms as numpy (side by side)."""
+    starts, deltas, samples, count = _compiled_layout()(read_only(corners, np.float64), float(half_width_px),
+                                                        PROFILE_STEP_PX, EDGE_END_FRACTION, MIN_EDGE_SAMPLES)
+    position, good, clean = step_positions(image, starts, deltas, samples, np.repeat(np.arange(4), count), 4,
+                                           MIN_PROFILE_CONTRAST, rising_only=True)  # one edge a group
+    points = (starts + position[:, None] * deltas).reshape(4, count, 2)
     enough = clean >= max(MIN_EDGE_SAMPLES, count // 2)
     return points, good.reshape(4, count) & enough[:, None]
 
@@ -241,7 +263,11 @@ def _fit(points, use, min_samples):
     return centre, direction, True
 
 
-_compiled_fit = compiled(_fit)  # see positioning/jit.py
+def _warm_up() -> None:
+    _fit_lines(np.zeros((4, MIN_EDGE_SAMPLES, 2)), np.ones((4, MIN_EDGE_SAMPLES), bool))
+
+
+_compiled_fit = compiled(_fit, _warm_up)  # see positioning/jit.py
 
 
 def _fit_lines(points: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -249,16 +275,9 @@ def _fit_lines(points: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndar
     the ``use``d points (4, K) of each edge's points (4, K, 2), after one outlier pass
     (points further than 3x 1.25x their mean distance, ~3 sigma); None when an edge has
     fewer than ``MIN_EDGE_SAMPLES``."""
-    centre, direction, fitted = _compiled_fit()(np.ascontiguousarray(points, np.float64),
-                                                np.ascontiguousarray(use, np.bool_), MIN_EDGE_SAMPLES)
+    centre, direction, fitted = _compiled_fit()(read_only(points, np.float64), read_only(use, np.bool_),
+                                                MIN_EDGE_SAMPLES)
     return (centre, direction) if fitted else None
-
-
-def compile_kernels() -> None:
-    """Compile (or load from the disk cache) the edge refinement's kernels now, for Mono8
-    images (the edge alignment's is the step profiles')."""
-    step_profiles.warm_up()
-    _fit_lines(np.zeros((4, MIN_EDGE_SAMPLES, 2)), np.ones((4, MIN_EDGE_SAMPLES), bool))
 
 
 def _corners_of(centre: np.ndarray, direction: np.ndarray) -> np.ndarray | None:

@@ -31,6 +31,7 @@ import numpy as np
 import structlog
 
 from calib.camera_info import CameraCalibration
+from positioning import jit
 from positioning.camera_model import project, project_pose
 from positioning.corner_pose import TargetPose, pose_covariance
 from positioning.detection import (
@@ -38,7 +39,6 @@ from positioning.detection import (
     DetectorOptions,
     TagDetection,
     TagDetector,
-    compile_kernels,
     refine_corners,
 )
 from positioning.edge_alignment import SHARP_CORNER_RMS_PX, refine_pose_on_edges
@@ -213,7 +213,7 @@ class TargetObserver:
         # a sharp image gives with this camera (kept through reset: it is the lens's)
         self._steady_corner_rms: collections.deque[float] = collections.deque(maxlen=SHARP_HISTORY_FRAMES)
         if edge_refinement or edge_alignment:
-            compile_kernels()  # now, not on the first frame
+            jit.warm_up()  # the compiled kernels now, not on the first frame
 
     def reset(self) -> None:
         self._scale_message = ""

@@ -16,9 +16,9 @@ crossing towards pixel centres by up to 0.08 px. The plateau levels are per grou
 edge, or a run of cell edges: means over its clean profiles), so their noise does not
 enter each profile.
 
-Compiled with numba (``positioning/jit.py``; ``warm_up`` compiles it before the first
-frame). The image always reaches the kernel as a read-only view: numba compiles a
-read-only and a writable array apart, and camera frames come both ways. The profiles are
+Compiled with numba (``positioning/jit.py``, whose ``warm_up`` compiles it before the first
+frame). The arrays always reach the kernel as read-only views (``jit.read_only``): numba
+compiles a read-only and a writable array apart, and camera frames come both ways. The profiles are
 a few thousand short loops of arithmetic; in numpy they were some thirty array operations
 of 20-100 us each, which made this measurement most of the corner refinement's and the
 edge alignment's time; compiled, 1188 profiles of 15 samples take ~0.2 ms.
@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from positioning.jit import compiled
+from positioning.jit import compiled, read_only
 
 
 def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, rising_only):
@@ -87,7 +87,11 @@ def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, ri
     return position, clean, per_group
 
 
-_compiled = compiled(_steps)  # see positioning/jit.py
+def _warm_up() -> None:  # Mono8, the cameras' and the renderer's
+    step_positions(np.zeros((4, 4), np.uint8), np.zeros((1, 2)), np.full((1, 2), 0.5), 4, np.zeros(1, np.int64), 1, 1.0)
+
+
+_compiled = compiled(_steps, _warm_up)  # see positioning/jit.py
 
 
 def step_positions(image: np.ndarray, starts: np.ndarray, deltas: np.ndarray, samples: int,
@@ -101,15 +105,6 @@ def step_positions(image: np.ndarray, starts: np.ndarray, deltas: np.ndarray, sa
     in each group (group_count,)). A position is meaningful for clean profiles only."""
     if samples < 4:
         raise ValueError(f"a profile needs at least 4 samples, not {samples}")
-    image = np.ascontiguousarray(image).view()
-    image.flags.writeable = False  # one compiled signature per pixel type (see the module's docstring)
-    return _compiled()(image, np.ascontiguousarray(starts, np.float64),
-                       np.ascontiguousarray(deltas, np.float64), int(samples),
-                       np.ascontiguousarray(groups, np.int64), int(group_count), float(min_contrast),
-                       bool(rising_only))
-
-
-def warm_up(dtype=np.uint8) -> None:
-    """Compile (or load from the disk cache) the kernel for images of ``dtype`` now."""
-    step_positions(np.zeros((4, 4), dtype), np.zeros((1, 2)), np.full((1, 2), 0.5), 4,
-                   np.zeros(1, np.int64), 1, 1.0)
+    image = read_only(image)  # one compiled signature per pixel type (see the module's docstring)
+    return _compiled()(image, read_only(starts, np.float64), read_only(deltas, np.float64), int(samples),
+                       read_only(groups, np.int64), int(group_count), float(min_contrast), bool(rising_only))

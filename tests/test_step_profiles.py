@@ -104,20 +104,30 @@ def test_read_only_and_writable_frames_share_one_compiled_kernel():
     assert len(uint8_kernels) == 1, uint8_kernels
 
 
-def test_a_target_observer_has_the_kernel_ready_before_its_first_frame():
-    code = ("from calib.camera_info import CameraCalibration\n"
-            "from positioning import step_profiles\n"
+def test_a_target_observer_has_every_kernel_ready_before_its_first_frame():
+    """Each kernel compiled once when the observer is built, with the argument types of
+    real use: frames of both kinds (camera buffers read-only, renders writable), the full
+    search with the corner refinement and the edge alignment, compile nothing more."""
+    code = ("import numpy as np\n"
+            "from calib.camera_info import paper_camera\n"
+            "from fakes import render_view\n"
+            "from positioning import jit\n"
             "from positioning.observer import TargetObserver\n"
+            "from positioning.range_map import camera_on_sphere\n"
             "from positioning.target import make_cube\n"
-            "import numpy as np\n"
-            "from positioning import detection\n"
-            "assert step_profiles._compiled.cache_info().currsize == detection._compiled_fit.cache_info().currsize == 0\n"
-            "calib = CameraCalibration(1280, 1024, np.array([[900.0, 0, 640], [0, 900.0, 512], [0, 0, 1]]), np.zeros(5))\n"
-            "TargetObserver(make_cube(), calib)\n"
-            "print(len(step_profiles._compiled().signatures), len(detection._compiled_fit().signatures))\n")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+            "assert len(jit.KERNELS) >= 5 and all(k.cache_info().currsize == 0 for k, _ in jit.KERNELS)\n"
+            "observer = TargetObserver(make_cube(), paper_camera())\n"
+            "ready = [len(k().signatures) for k, _ in jit.KERNELS]\n"
+            "image = render_view(camera_on_sphere(40.0, 30.0, 2.0), seed=3)\n"
+            "frozen = np.frombuffer(image.tobytes(), np.uint8).reshape(image.shape)\n"
+            "poses = [observer.observe(frame, None, 0).pose for frame in (image, frozen)]\n"
+            "assert all(p is not None and p.reproj_rms_px < 0.1 for p in poses), poses\n"
+            "print(ready, [len(k().signatures) for k, _ in jit.KERNELS])\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == ["1", "1"]
+    ready, after = result.stdout.strip().split("] [")
+    assert ready.strip("[") == after.strip("]"), result.stdout
+    assert set(ready.strip("[").split(", ")) == {"1"}, result.stdout
 
 
 def test_the_edge_line_fit_is_total_least_squares_after_one_outlier_pass():
