@@ -32,17 +32,32 @@ def _views(distance_m: float, count: int, seed: int):
     return [camera_on_sphere(45 + rng.uniform(-12, 12), 33 + rng.uniform(-6, 6), distance_m) for _ in range(count)]
 
 
+def _cpu_ms(fn, *args) -> float:
+    start = time.process_time()
+    fn(*args)
+    return (time.process_time() - start) * 1000
+
+
 def cpu_median_ms(fn, repeats: int, warmup: int = 2) -> float:
     """Median CPU time of ``fn()`` in ms. CPU time, not wall time: the machine is shared
     (five engineers on two cores), and with one thread CPU time is the one-core cost."""
     for _ in range(warmup):
         fn()
-    times = []
-    for _ in range(repeats):
-        start = time.process_time()
-        fn()
-        times.append(time.process_time() - start)
-    return statistics.median(times) * 1000
+    return statistics.median(_cpu_ms(fn) for _ in range(repeats))
+
+
+def paired_ratios(ours, baseline, frames: list[np.ndarray], repeats: int = 15, warmup: int = 2) -> list[float]:
+    """CPU time of ``ours(frame)`` over ``baseline(frame)``, each pair on the same frame and
+    timed back to back: the load of a shared machine moves within seconds (a phase of 15
+    frames timed after another gave ratios 0.59-0.79 in one run), a pair shares its moment."""
+    for k in range(warmup):
+        ours(frames[k % len(frames)])
+        baseline(frames[k % len(frames)])
+    ratios = []
+    for k in range(repeats):
+        frame = frames[k % len(frames)]
+        ratios.append(_cpu_ms(ours, frame) / _cpu_ms(baseline, frame))
+    return ratios
 
 
 def _time_processor(processor, frames: list[np.ndarray]) -> tuple[float, float, float, str]:
@@ -68,9 +83,14 @@ def _time_processor(processor, frames: list[np.ndarray]) -> tuple[float, float, 
     return first_ms, full_ms, predicted_ms, processor.last_search
 
 
-def _time_baseline(frames: list[np.ndarray]) -> float:
-    """Median CPU ms per frame of the range map's corners-only baseline (bench/range.py:
-    AprilTag 3 at decimate 2 on the full frame, EPnP + LM on the library's corners)."""
+def _full_frame(processor):
+    """The full-frame search of ``processor`` as ``ours(frame)``: no prior, the target found again."""
+    return lambda frame: processor.observer.observe(frame, None, 0, full_search=True)
+
+
+def _baseline():
+    """The range map's corners-only baseline (bench/range.py) as ``baseline(frame)``:
+    AprilTag 3 at decimate 2 on the full frame, EPnP + LM on the library's corners."""
     from bench.range import baseline_pose
     from calib.camera_info import paper_camera
     from positioning.detection import DetectorOptions, TagDetector
@@ -78,18 +98,24 @@ def _time_baseline(frames: list[np.ndarray]) -> float:
 
     cube, camera = make_cube(), paper_camera()
     detector = TagDetector(cube.family, DetectorOptions())  # decimate 2, the paper's
+    return lambda frame: baseline_pose(frame, camera, detector, cube)
+
+
+def _time_baseline(baseline, frames: list[np.ndarray]) -> float:
+    """Median CPU ms per frame of ``baseline(frame)`` (``_baseline()``)."""
     index = iter(range(10**9))
-    return cpu_median_ms(lambda: baseline_pose(frames[next(index) % len(frames)], camera, detector, cube), repeats=15)
+    return cpu_median_ms(lambda: baseline(frames[next(index) % len(frames)]), repeats=15)
 
 
-SPEED_ROUNDS = 3  # rounds of (corners only, edge alignment, baseline), one after the other
+SPEED_ROUNDS = 3  # rounds of (corners only, edge alignment, baseline, pairs), one after the other
 
 
 def speed_table() -> str:
     """Corners only (the target pose issue) and edge alignment (issue 9), and the
     corners-only baseline, on the same frames in the same run so machine load hits all:
-    ``SPEED_ROUNDS`` alternating rounds, the medians over them, and the ratio to the
-    baseline per round (median and range: a shared machine's load moves between rounds)."""
+    ``SPEED_ROUNDS`` alternating rounds and the medians over them; the ratio to the
+    baseline from full frames and baseline frames timed in pairs (``paired_ratios``): the
+    median over every pair, and the range of the rounds' medians."""
     from calib.camera_info import paper_camera
     from fakes import render_view
     from positioning.single_frame import TargetPoseProcessor
@@ -104,18 +130,21 @@ def speed_table() -> str:
         frames = [np.clip(np.round(still + rng.normal(0, 2.0, still.shape)), 0, 255).astype(np.uint8)
                   for _ in range(8)]
         corners_only, aligned = TargetPoseProcessor(cube, camera, edge_alignment=False), TargetPoseProcessor(cube, camera)
-        rounds = [(_time_processor(corners_only, frames), _time_processor(aligned, frames), _time_baseline(frames))
+        baseline_pose = _baseline()
+        rounds = [(_time_processor(corners_only, frames), _time_processor(aligned, frames),
+                   _time_baseline(baseline_pose, frames), paired_ratios(_full_frame(aligned), baseline_pose, frames))
                   for _ in range(SPEED_ROUNDS)]
         before = [statistics.median(r[0][k] for r in rounds) for k in range(3)]
         after = [statistics.median(r[1][k] for r in rounds) for k in range(3)]
         baseline = statistics.median(r[2] for r in rounds)
-        ratios = [r[1][1] / r[2] for r in rounds]
+        medians = [statistics.median(r[3]) for r in rounds]
+        ratio = statistics.median(x for r in rounds for x in r[3])
         rows.append([f"{distance:.0f} m", f"{baseline:.1f}", f"{before[1]:.1f}", f"{after[1]:.1f}",
-                     f"{statistics.median(ratios):.2f} ({min(ratios):.2f}-{max(ratios):.2f})", f"{after[0]:.1f}",
+                     f"{ratio:.2f} ({min(medians):.2f}-{max(medians):.2f})", f"{after[0]:.1f}",
                      f"{before[2]:.1f}", f"{after[2]:.1f} ({rounds[-1][1][3]})"])
     return markdown_table(["camera to cube", "baseline: AprilTag 3 decimate 2 + EPnP + LM, CPU ms",
                            "full frame, corners only, CPU ms", "full frame, edge alignment, CPU ms",
-                           f"full frame, edge alignment / baseline (median of {SPEED_ROUNDS} rounds, range)", "first frame after a start (+ tag-size check), CPU ms",
+                           f"full frame, edge alignment / baseline, frame by frame in pairs (median; {SPEED_ROUNDS} rounds' medians)", "first frame after a start (+ tag-size check), CPU ms",
                            "predicted regions, corners only, CPU ms", "predicted regions, edge alignment, CPU ms"],
                           rows)
 
