@@ -180,7 +180,7 @@ def _profile_layout(corners, half_width, step_px, end_fraction, min_samples):
     deltas = np.empty((4 * count, 2))
     for k in range(4):
         dx, dy = corners[(k + 1) % 4, 0] - corners[k, 0], corners[(k + 1) % 4, 1] - corners[k, 1]
-        length = np.hypot(dx, dy)
+        length = np.hypot(dx, dy) + 1e-300  # (compiled, a division by zero would raise)
         out_x, out_y = dy / length, -dx / length  # corners turn clockwise on screen
         for j in range(count):
             fraction = end_fraction + (1 - 2 * end_fraction) * j / (count - 1)
