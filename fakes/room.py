@@ -41,6 +41,9 @@ class Room:
     boxes: tuple[Box, ...] = ()
     # walls (atlas order, below) given another texture, the others kept: a room changed in part
     retextured: tuple[int, ...] = ()
+    # per wall (atlas order), the share of its width that is plain paint (one span, a few
+    # scuffs): rich to sparse walls. Empty: every wall textured all over.
+    plain: tuple[float, ...] = ()
 
     @property
     def lower(self) -> np.ndarray:
@@ -93,6 +96,13 @@ def room_atlas(room: Room) -> RoomAtlas:
         texture = procedural_texture(h, w, rng, mean=mean)
         if wall in room.retextured:  # drawn after the original, so the other walls stay as they were
             texture = procedural_texture(h, w, np.random.default_rng([room.seed, 7, 100 + wall]), mean=mean)
+        span = plain_span(room, wall)
+        if span is not None:  # texel j covers [j, j + 1) texels from the wall's lower corner
+            j0, j1 = (int(round((m - lower[u_axis]) / room.texel_m)) for m in span)
+            if j1 > j0:
+                texture = texture.copy()
+                texture[:, j0:j1] = plain_paint(h, j1 - j0, np.random.default_rng([room.seed, 7, 300 + wall]),
+                                                mean + 0.1)
         texture = np.pad(texture, ATLAS_PADDING, mode="edge")
         blocks.append(texture)
         # texel j covers [j, j + 1) * texel from the wall's lower corner; its centre is at
@@ -110,6 +120,24 @@ def room_atlas(room: Room) -> RoomAtlas:
         row += block.shape[0]
     image.setflags(write=False)
     return RoomAtlas(image, np.array(offsets_x, np.float32), np.array(offsets_y, np.float32), room.texel_m)
+
+
+def plain_paint(height: int, width: int, rng: np.random.Generator, mean: float = 0.72) -> np.ndarray:
+    """Fresh paint: flat, faint roller marks and a few scuffs per square metre at 4 mm texels."""
+    return procedural_texture(height, width, rng, mean=mean, contrast=0.03, shapes_per_mpx=40.0)
+
+
+def plain_span(room: Room, wall: int) -> tuple[float, float] | None:
+    """Where wall ``wall`` (atlas order) is plain paint: (start, end) along its u axis, world
+    metres, one span of ``room.plain[wall]`` of its width; None where it is textured all over."""
+    share = float(np.clip(room.plain[wall], 0.0, 1.0)) if room.plain else 0.0
+    if share <= 0.0:
+        return None
+    u_axis = WALL_AXES[wall // 2][0]
+    low, high = float(room.lower[u_axis]), float(room.upper[u_axis])
+    width = (high - low) * share
+    start = low + float(np.random.default_rng([room.seed, 7, 200 + wall]).uniform(0.0, high - low - width))
+    return start, start + width
 
 
 @functools.lru_cache(maxsize=32)

@@ -41,9 +41,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from fakes.room import Box, box_quads
+from fakes.room import Box, box_quads, plain_paint
 from fakes.surfaces import Quad, TextureShader
-from fakes.textures import procedural_texture
 from positioning.geometry import Transform, look_at
 from positioning.trajectory_io import StampedPose
 
@@ -310,7 +309,7 @@ class Effects:
         return tuple(g for g in groups if g)
 
 
-def _walkers_across(poses: list[Transform], times: np.ndarray, crossings: list[tuple[float, float, float]],
+def walkers_across(poses: list[Transform], times: np.ndarray, crossings: list[tuple[float, float, float]],
                     seed: int) -> tuple[Walker, ...]:
     """Walkers that cross the line of sight at (time, distance ahead m, speed m/s), from
     left to right and back alternately, walking 2.4 s each side of the crossing."""
@@ -336,7 +335,7 @@ def painted_wall() -> tuple[Quad, ...]:
     texel = 0.004
     rng = np.random.default_rng(42)
     h, w = int(2.8 / texel), int(2.4 / texel)
-    texture = procedural_texture(h, w, rng, mean=0.72, contrast=0.03, shapes_per_mpx=40.0)
+    texture = plain_paint(h, w, rng)
     origin = np.array([BLANK_WALL_X, 0.9, 2.85])  # top-left seen from inside (looking +x)
     return (Quad(origin, np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0]), 2.4, 2.8,
                  TextureShader(texture, texel)),)
@@ -365,7 +364,7 @@ def make_effects(name: str, poses: list[Transform], times: np.ndarray) -> Effect
     if name == "passers_by":
         # one over the cube during initialisation (0.5 s in), two later at other distances
         crossings = [(1.2, 1.0, 1.2), (8.0, 0.6, 1.0), (min(18.0, seconds - 6.0), 1.8, 1.4)]
-        return Effects(walkers=_walkers_across(poses, times, crossings, seed=5))
+        return Effects(walkers=walkers_across(poses, times, crossings, seed=5))
     if name == "blank_wall":
         return Effects(static_quads=painted_wall())
     return Effects()

@@ -59,11 +59,13 @@ def write_synthetic_sequence(
     progress: Callable[[int, int], None] | None = None,
     poses: list[StampedPose] | None = None,
     effects: Effects | None = None,
+    extra_files: dict[str, str] | None = None,
 ) -> SequenceSummary:
     """Render ``trajectory`` into the sequence directory ``out_dir`` (which must not exist
     or be empty). ``progress(done, total)`` is called after every frame. ``poses`` and
     ``effects``, where given, replace the named trajectory's (``trajectory`` then only
-    names the render)."""
+    names the render). ``extra_files`` (name: text) are written beside them, in the same
+    all-or-nothing directory."""
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputFileError(f"{out}: already exists and is not an empty directory; choose another --out")
@@ -95,6 +97,8 @@ def write_synthetic_sequence(
         write_tum(staging / "groundtruth.tum", poses)
         write_camera_info(staging / "camera.yaml", calibration)
         atomic_write_text(staging / "target.yaml", target_yaml(target or make_cube()))
+        for name, text in (extra_files or {}).items():
+            atomic_write_text(staging / name, text)
         if out.exists():
             out.rmdir()  # empty, checked above
         os.replace(staging, out)

@@ -20,9 +20,16 @@ def register(subparsers) -> None:
             "sequence directory: mav0/cam0 (EuRoC layout), groundtruth.tum, camera.yaml, target.yaml."
         ),
     )
-    parser.add_argument("--trajectory", required=True, choices=TRAJECTORY_NAMES,
-                        help="camera path; the robot-motion scenarios (turn_after_init ... long_lap) bring "
-                             "their own passers-by, exposure steps and exposure-long motion blur")
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--trajectory", choices=TRAJECTORY_NAMES,
+                       help="camera path; the robot-motion scenarios (turn_after_init ... long_lap) bring "
+                            "their own passers-by, exposure steps and exposure-long motion blur")
+    which.add_argument("--family", type=int, metavar="SEED",
+                       help="a member of the randomized family (fakes/family.py): scene, lens, robot, motion "
+                            "and disturbances all drawn from SEED; writes family.json beside the frames "
+                            "(--seconds, --fps, --calib, --target and the render options do not apply)")
+    parser.add_argument("--resolution", choices=("half", "full"), default="half",
+                        help="with --family: 640x512 (default) or 1280x1024, the same lens")
     parser.add_argument("--out", required=True, help="sequence directory to create (must not exist or be empty)")
     from fakes.trajectories import DEFAULT_FPS, DEFAULT_FPS_OF, DEFAULT_SECONDS
 
@@ -68,6 +75,10 @@ def run(args) -> int:
 
 
 def _simulate(args, progress):
+    if args.family is not None:
+        from fakes.family import make_case, render_case
+
+        return render_case(make_case(args.family, args.resolution), args.out, progress)
     from calib.camera_info import read_camera_info
     from fakes.camera import RenderOptions
     from fakes.sequence import write_synthetic_sequence
