@@ -39,6 +39,7 @@ class RayHold:
         # track id -> (world camera centre, world unit ray) of its last measured sighting
         self.rays: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.since: int | None = None  # stamp of the last measured pose before the hold
+        self.speed_m_s = 0.0  # the camera's speed by the motion model when the hold began
 
     @property
     def holding(self) -> bool:
@@ -75,6 +76,9 @@ class RayHold:
         o = self.options
         if self.since is None:
             self.since = last_stamp
+            step_s = (stamp_ns - last_stamp) / 1e9
+            self.speed_m_s = float(np.linalg.norm(prediction.translation - last.translation)) / step_s \
+                if step_s > 0 else 0.0
         held_s = (stamp_ns - self.since) / 1e9
         if held_s > o.max_hold_s:
             return None
@@ -107,7 +111,25 @@ class RayHold:
         rotation_sigma = np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[3:, 3:])))
         if np.degrees(rotation_sigma) > o.max_hold_rotation_sigma_deg:
             return None
-        return fit.T_world_camera, fit.covariance
+        covariance = fit.covariance
+        if odometry is None and fit.point_inliers.sum() < o.min_hold_points:
+            # nothing measured the position (rays of unknown depth, each fresh one born on a
+            # held pose, agree with a position left behind): it is as unsure as the robot's
+            # motion allows (docs/family.md, "What was traced")
+            covariance = covariance.copy()
+            floor = self.unmeasured_sigma(held_s) ** 2
+            smallest = float(np.min(np.linalg.eigvalsh(covariance[:3, :3])))
+            covariance[:3, :3] += np.eye(3) * max(0.0, floor - smallest)
+        return fit.T_world_camera, covariance
+
+    def unmeasured_sigma(self, held_s: float) -> float:
+        """The standard deviation of a position nothing has measured for ``held_s`` seconds:
+        the robot may have gone on at the speed it had when the hold began (the motion model
+        lets that speed die away) or changed it by ``coast_accel_m_s2`` (0.5 a t^2), as the
+        coast assumes."""
+        o = self.options
+        return o.hold_sigma_m + (o.hold_sigma_m_per_s + self.speed_m_s) * held_s \
+            + 0.5 * o.coast_accel_m_s2 * held_s * held_s
 
     def _coast(self, held_s: float, prediction: Transform) -> Held | None:
         """Nothing to see (a passer-by filling the view): the motion model's pose (the wheel
