@@ -85,28 +85,37 @@ def _track(tree: Path, sequence: Path, out: Path, poses: bool, extra: tuple[str,
             "peak_mb": int(peak.group(1)) / 1024 if peak else float("nan")}
 
 
+def read_poses(sequence: Path, poses_jsonl: Path) -> list:
+    """Per frame of ``sequence``: (StampedPose, 6x6 covariance or None) from ``cubeloc track
+    --poses``, or None for a frame without a pose."""
+    from drivers.sequence import read_sequence_index
+    from positioning.geometry import Transform
+    from positioning.trajectory_io import StampedPose
+
+    by_stamp = {}
+    for line in poses_jsonl.read_text().splitlines():
+        doc = json.loads(line)
+        pose = Transform.from_quaternion(np.array(doc["position"]), np.array(doc["orientation"]))
+        cov = None if doc["covariance"] is None else np.array(doc["covariance"]).reshape(6, 6)
+        by_stamp[doc["stamp_ns"]] = (StampedPose(doc["stamp_ns"], pose), cov)
+    return [by_stamp.get(e.stamp_ns) for e in read_sequence_index(sequence)]
+
+
 def _score(sequence: Path, out: Path, poses: bool):
     from drivers.sequence import read_sequence_index
     from positioning.evaluation import score_run
-    from positioning.trajectory_io import StampedPose, read_tum
+    from positioning.trajectory_io import read_tum
 
     truth = read_tum(sequence / "groundtruth.tum")
+    if poses:
+        return score_run(truth, read_poses(sequence, out.with_suffix(".jsonl")))
     stamps = [e.stamp_ns for e in read_sequence_index(sequence)]
     by_stamp: dict[int, tuple] = {}
-    if poses:
-        from positioning.geometry import Transform
-
-        for line in out.with_suffix(".jsonl").read_text().splitlines():
-            doc = json.loads(line)
-            pose = Transform.from_quaternion(np.array(doc["position"]), np.array(doc["orientation"]))
-            cov = None if doc["covariance"] is None else np.array(doc["covariance"]).reshape(6, 6)
-            by_stamp[doc["stamp_ns"]] = (StampedPose(doc["stamp_ns"], pose), cov)
-    else:
-        frame_stamps = np.array(stamps)
-        for p in read_tum(out):  # TUM stamps are seconds: back to the nearest frame's
-            i = int(np.clip(np.searchsorted(frame_stamps, p.stamp_ns), 1, len(stamps) - 1))
-            nearest = i if abs(stamps[i] - p.stamp_ns) < abs(stamps[i - 1] - p.stamp_ns) else i - 1
-            by_stamp[stamps[nearest]] = (p, None)
+    frame_stamps = np.array(stamps)
+    for p in read_tum(out):  # TUM stamps are seconds: back to the nearest frame's
+        i = int(np.clip(np.searchsorted(frame_stamps, p.stamp_ns), 1, len(stamps) - 1))
+        nearest = i if abs(stamps[i] - p.stamp_ns) < abs(stamps[i - 1] - p.stamp_ns) else i - 1
+        by_stamp[stamps[nearest]] = (p, None)
     return score_run(truth, [by_stamp.get(s) for s in stamps])
 
 
