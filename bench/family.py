@@ -89,8 +89,16 @@ def seed_figures(sequence: Path, per_frame: list) -> dict:
 
 
 def run_tree(tree: Path, sequence: Path, work: Path, label: str) -> dict:
+    """One ``cubeloc track`` of ``sequence`` from ``tree``: its figures; a run that died is
+    scored as no pose at all, with ``crashed`` its last words."""
+    from drivers.sequence import read_sequence_index
+
     out = work / f"{sequence.name}-{label}.tum"
-    figures = _track(tree, sequence, out, poses=True, extra=("--no-plot",))
+    try:
+        figures = _track(tree, sequence, out, poses=True, extra=("--no-plot",))
+    except RuntimeError as exc:
+        nothing = [None] * len(read_sequence_index(sequence))
+        return {**seed_figures(sequence, nothing), "fps": float("nan"), "crashed": str(exc).splitlines()[-1][-160:]}
     return {**seed_figures(sequence, read_poses(sequence, out.with_suffix(".jsonl"))), "fps": figures["fps"]}
 
 
@@ -136,7 +144,7 @@ def report(results: list[tuple[int, str, dict, dict]], which: str, jobs: int) ->
                      f"{100 * f['coverage']:.1f} %", f"{f['rms_mm']:.1f}", f"{f['max_mm']:.0f}",
                      f"{f['per_metre_mm']:.1f}", f"{f['gap_s']:.1f}",
                      f"{100 * f['consistent']:.1f} % ({f['beyond_5']})", f"{f['fps']:.1f}",
-                     "yes" if f["meets"] else "no"])
+                     "crashed" if f.get("crashed") else "yes" if f["meets"] else "no"])
     table = markdown_table(["seed", "tracker", "scene", "camera", "motion", "unobservable", "coverage", "RMS mm",
                             "max mm", "mm per m away", "longest gap s", "inside 3 sigma (beyond 5)", "fps",
                             "meets goals"], rows)

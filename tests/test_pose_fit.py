@@ -80,3 +80,24 @@ def test_rays_on_a_mover_are_cut_and_the_orientation_holds():
 def test_nothing_to_hold_the_pose_gives_none():
     rays = Rays(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2)), 0.25)
     assert fit_pose(Transform.identity(), np.zeros((0, 3)), np.zeros((0, 2)), rays, fx=FX, sigma_px=SIGMA_PX) is None
+
+
+def test_ransac_pnp_on_degenerate_points_is_no_pose_not_an_exception():
+    """Map points on a line (a map gone bad): OpenCV's SQPnP asserts instead of failing
+    (cubeloc track died of it on a family seed); ``pnp_ransac`` answers None, and a good
+    set still gives its pose."""
+    import cv2
+    import pytest
+
+    from positioning.tracking.pose_fit import pnp_ransac
+
+    rng = np.random.default_rng(0)
+    line = np.outer(np.linspace(1.0, 2.0, 25), [0.1, 0.2, 1.0])
+    xn = line[:, :2] / line[:, 2:3] + rng.normal(0, 1e-3, (25, 2))
+    with pytest.raises(cv2.error):
+        cv2.solvePnPRansac(line, xn, np.eye(3), None, iterationsCount=60, reprojectionError=0.002,
+                           confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    assert pnp_ransac(line, xn, 0.002, 60, cv2.SOLVEPNP_SQPNP) is None
+    points = scene(3, 40)
+    found = pnp_ransac(points, project_normalised(Transform.identity(), points)[0], 0.002, 60, cv2.SOLVEPNP_SQPNP)
+    assert found is not None and len(found[2]) == 40 and np.allclose(found[1].ravel(), 0.0, atol=1e-6)

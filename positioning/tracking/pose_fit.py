@@ -42,6 +42,22 @@ HUBER = 2.0  # whitened units: residuals beyond 2 sigma count linearly
 CHI2_CUT = 3.03  # whitened norm of a 2-D residual: chi-square 99 % for 2 dof
 
 
+def pnp_ransac(obj: np.ndarray, xn: np.ndarray, threshold: float, iterations: int, flags: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """OpenCV's RANSAC PnP on normalised coordinates: (rvec, tvec, inlier indices), or None
+    when it finds no pose. Degenerate points (collinear, nearly coincident: a map gone bad)
+    make SQPnP raise an assertion instead of failing; that too is no pose, not a dead frame
+    loop."""
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, xn, np.eye(3), None, iterationsCount=iterations,
+                                                     reprojectionError=threshold, confidence=0.999, flags=flags)
+    except cv2.error:
+        return None
+    if not ok or inliers is None:
+        return None
+    return rvec, tvec, inliers.ravel()
+
+
 @dataclass(frozen=True)
 class Rays:
     """Tracks without a point: where each was born and how it is seen now."""

@@ -23,7 +23,7 @@ from positioning.geometry import Transform
 from positioning.tracking.features import find_corners
 from positioning.tracking.map import Keyframe, Map
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import fit_pose
+from positioning.tracking.pose_fit import fit_pose, pnp_ransac
 
 ORB_PATCH_PX = 31  # ORB's default patch; keypoints closer than half of it to the edge are dropped
 
@@ -208,11 +208,10 @@ class Relocaliser:
         xn = undistort(pixels, self.calibration)
         threshold = o.reloc_reproj_px / self.calibration.fx
         iterations, solver = (o.reloc_boot_iterations, cv2.SOLVEPNP_P3P) if thorough else (500, cv2.SOLVEPNP_SQPNP)
-        ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, xn, np.eye(3), None, iterationsCount=iterations,
-                                                     reprojectionError=threshold, confidence=0.999, flags=solver)
-        if not ok or inliers is None or len(inliers) < o.reloc_min_inliers:
+        found = pnp_ransac(obj, xn, threshold, iterations, solver)
+        if found is None or len(found[2]) < o.reloc_min_inliers:
             return None
-        inl = inliers.ravel()
+        rvec, tvec, inl = found
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], xn[inl], np.eye(3), None, rvec.reshape(3, 1), tvec.reshape(3, 1))
         T_camera_world = Transform.from_rvec_tvec(rvec, tvec)
         proj, z = project_normalised(T_camera_world, obj)

@@ -50,7 +50,7 @@ from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import fit_pose
+from positioning.tracking.pose_fit import fit_pose, pnp_ransac
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
@@ -370,14 +370,12 @@ class Tracker:
         obj = np.array([self.map.points[int(t)] for t in ids])
         img = xn[has]
         eye = np.eye(3)
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, eye, None, iterationsCount=o.pnp_iterations,
-            reprojectionError=o.pnp_reproj_px / self.fx, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP,
-        )
-        if not ok or inl is None or len(inl) < o.min_pnp_inliers:
-            return None, 0 if inl is None else len(inl), np.zeros(0, np.int64), 0.0, None
+        found = pnp_ransac(obj, img, o.pnp_reproj_px / self.fx, o.pnp_iterations, cv2.SOLVEPNP_SQPNP)
+        if found is None or len(found[2]) < o.min_pnp_inliers:
+            return None, 0 if found is None else len(found[2]), np.zeros(0, np.int64), 0.0, None
+        rvec, tvec, inl = found
         mask = np.zeros(len(ids), bool)
-        mask[inl.ravel()] = True
+        mask[inl] = True
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
         for _ in range(2):  # refine on the inliers, then re-select them with the refined pose
             rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], eye, None, rvec, tvec, criteria)
