@@ -168,6 +168,10 @@ class Tracker:
         self._hold.rebase(pose if held is None else None, tracks.ids, xn)
         self._frame_sigma = position_sigma(trusted.covariance if trusted is not None else covariance)
         self._last_covariance = estimate.covariance
+        # a visible correction (the target back after drift) is where the camera is, not how
+        # it moved: as after relocalised(), the velocity it had stays (taken as motion, a
+        # 4.7 m correction made the next held poses run off at 90 m/s: family seed 2)
+        self._after_relocalisation = self._after_relocalisation or forced
         self._update_motion(pose, stamp_ns)
         self._frame_pose = pose
         if held is not None:
