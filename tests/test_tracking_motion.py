@@ -3,6 +3,8 @@ relocalisation does to it (helpers from tests/test_tracking_core.py)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from test_tracking_core import CAL, SYNC, SyntheticTracks, room_points, run, trolley_path
 
@@ -142,3 +144,31 @@ def test_a_position_held_on_rays_alone_claims_no_more_than_the_robot_s_motion_al
         hold.add(last, ids, xn)
     assert np.linalg.norm(last.translation - truth.translation) > 0.5  # the position really was not measured
     assert max(nees) < 14.16, nees
+
+
+def test_a_target_pose_too_uncertain_to_anchor_is_published_but_neither_moves_nor_maps():
+    """Lost, the cube comes back too far away to anchor: its poses, each 10 cm off on its
+    own, go out (with their covariance) but make no keyframe, and the steps between them are
+    not taken for the camera's motion: the motion model does not run off after them."""
+    poses = trolley_path(80, turn_at=1e6)  # the cube in view throughout
+    source = SyntheticTracks(room_points(3), seed=3)
+    tracker = Tracker(CAL, SYNC)
+    rng = np.random.default_rng(5)
+    try:
+        run(tracker, source, poses[:50], lambda i: i < 20, blank=lambda i: i >= 40)  # lost from ~46 on
+        assert tracker.lost
+        keyframes = len(tracker.map.keyframes)
+        uncertain = np.diag([0.05**2] * 3 + [0.01**2] * 3)
+        for i in range(50, 60):
+            seen = source.target(poses[i])
+            assert seen is not None
+            off = Transform(seen.T_world_camera.rotation, seen.T_world_camera.translation + rng.normal(0, 0.1, 3))
+            out = tracker.step(i * 100_000_000, source.tracks(poses[i]),
+                               replace(seen, T_world_camera=off, covariance=uncertain))
+            assert out.result.estimate is not None and out.result.estimate.planes == seen.planes
+            assert not out.keyframe
+        assert len(tracker.map.keyframes) == keyframes
+        predicted = tracker.predict(60 * 100_000_000)
+        assert np.linalg.norm(predicted.translation - tracker.last_pose.translation) < 0.05  # a trolley's frame
+    finally:
+        tracker.close()

@@ -13,7 +13,9 @@ other source) and, when the target is in view, a trusted target pose with its co
   map is moved by the difference and the frame is published as RELOCALISED.
 - A target pose less sure than the map (a grazing face, the image edge) neither corrects
   nor anchors it: the map's pose goes out (a 24 mm-sigma target pose had moved the map by
-  12 mm on ``agile``).
+  12 mm on ``agile``). Where nothing else gives a pose, such a target pose goes out but
+  makes no keyframe and is not taken for motion. The target corrects the map only against
+  the map's own pose (PnP, or the motion model on a map tracked until the last frame).
 - Keyframes on baseline (parallax) and visibility criteria, on every frame while the map
   runs short (a turn carries its points out of view); tracks without a point are
   triangulated against the first keyframe that saw them, from 0.7 deg of parallax (0.3
@@ -131,7 +133,9 @@ class Tracker:
         if trusted is not None:
             pose = trusted.T_world_camera
             state = PoseState.TARGET
-            before = tracked if tracked is not None else (None if self.lost else prediction)
+            # the map's own pose: after a hold the prediction is the motion model's, and a
+            # correction by it would move the map by the hold's error
+            before = tracked if tracked is not None else (None if self.lost or self.holding else prediction)
             if self.lost:
                 state = PoseState.RELOCALISED
             elif before is not None and not self._target_seen and (tracked is not None or self._jumped(before, pose)):
@@ -168,18 +172,21 @@ class Tracker:
         self._hold.rebase(pose if held is None else None, tracks.ids, xn)
         self._frame_sigma = position_sigma(trusted.covariance if trusted is not None else covariance)
         self._last_covariance = estimate.covariance
-        # a visible correction (the target back after drift) is where the camera is, not how
-        # it moved: as after relocalised(), the velocity it had stays (taken as motion, a
-        # 4.7 m correction made the next held poses run off at 90 m/s: family seed 2)
+        # a visible correction is where the camera is, not how it moved, and the steps into
+        # and out of a target pose too uncertain to anchor are its error: the velocity stays
         self._after_relocalisation = self._after_relocalisation or forced
-        self._update_motion(pose, stamp_ns)
+        self._update_motion(pose, stamp_ns, noisy=trusted is not None and not self._anchors(trusted))
         self._frame_pose = pose
         if held is not None:
             # no keyframe from a pose whose position is only held: nothing is triangulated
             # from it; fresh corners keep the rays coming
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays"), True, drop)
-        want = self._maybe_keyframe(stamp_ns, pose, tracks, xn, trusted, inliers, forced)
         status = "ok" if state is not PoseState.RELOCALISED else "relocalised"
+        if trusted is not None and not self._anchors(trusted):
+            # nor from a target pose too uncertain to anchor: each is off on its own, and points
+            # triangulated between two of them are off by as much as their baseline
+            return TrackerOutput(FrameResult(estimate, status, "target pose too uncertain to map from"), True, drop)
+        want = self._maybe_keyframe(stamp_ns, pose, tracks, xn, trusted, inliers, forced)
         return TrackerOutput(FrameResult(estimate, status), want, drop, keyframe=want)
 
     @property
@@ -302,10 +309,14 @@ class Tracker:
         rotation_per_s, translation_per_s = self._velocity
         return self._last @ Transform.from_rvec_tvec(rotation_per_s * dt, translation_per_s * dt)
 
-    def _update_motion(self, pose: Transform, stamp_ns: int) -> None:
+    def _update_motion(self, pose: Transform, stamp_ns: int, noisy: bool = False) -> None:
+        """Take ``pose`` as the last one and the step to it as the velocity, unless the
+        step is a correction or ``noisy`` (then the velocity stays, also for the next step)."""
         dt = (stamp_ns - self._last_stamp) / 1e9
         if self._last is None or not 0.0 < dt <= self.options.max_extrapolation_s:
             self._velocity = None
+        elif noisy:
+            pass
         elif self._after_relocalisation and self._velocity is not None:
             # the step from a relocalised pose measures its correction (its match is some
             # millimetres off), not the camera's motion: the velocity it had stays one
@@ -314,7 +325,7 @@ class Tracker:
         else:
             step = self._last.inverse() @ pose
             self._velocity = (step.rvec() / dt, step.translation / dt)
-        self._after_relocalisation = False
+        self._after_relocalisation = noisy
         self._last, self._last_stamp = pose, stamp_ns
 
     def predict_pixels(self, stamp_ns: int, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
