@@ -310,7 +310,7 @@ class Effects:
 
 
 def walkers_across(poses: list[Transform], times: np.ndarray, crossings: list[tuple[float, float, float]],
-                    seed: int) -> tuple[Walker, ...]:
+                   seed: int) -> tuple[Walker, ...]:
     """Walkers that cross the line of sight at (time, distance ahead m, speed m/s), from
     left to right and back alternately, walking 2.4 s each side of the crossing."""
     walkers = []

@@ -178,7 +178,7 @@ class TrackerOptions:
     reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
     reloc_max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused
     reloc_boot_iterations: int = 10_000  # RANSAC samples at boot on a saved map (relocalise.py)
-    min_reference_points: int = 30  # a loaded map's points in view that give the pose alone (Tracker._pnp)
+    min_reference_points: int = 30  # a loaded map's points in view that give the pose alone (pose_fit.pose_from_map)
     # a loaded map's points found again at every keyframe (Relocaliser.refind)
     refind: bool = True
     refind_radius_px: float = 10.0

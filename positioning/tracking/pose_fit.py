@@ -32,11 +32,18 @@ SYNOPSIS
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+from positioning.camera_model import project_normalised
 from positioning.geometry import Transform
+
+if TYPE_CHECKING:
+    from positioning.tracking.map import Map
+    from positioning.tracking.options import TrackerOptions
+    from positioning.tracking.types import Tracks
 
 HUBER = 2.0  # whitened units: residuals beyond 2 sigma count linearly
 CHI2_CUT = 3.03  # whitened norm of a 2-D residual: chi-square 99 % for 2 dof
@@ -56,6 +63,52 @@ def pnp_ransac(obj: np.ndarray, xn: np.ndarray, threshold: float, iterations: in
     if not ok or inliers is None:
         return None
     return rvec, tvec, inliers.ravel()
+
+
+def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Transform | None,
+                  o: TrackerOptions, fx: float) -> tuple[Transform | None, int, np.ndarray, float, np.ndarray | None]:
+    """The tracker's pose from the tracks with map points (``xn`` their normalised
+    coordinates): PnP with RANSAC, refined with Levenberg-Marquardt on the inliers, refused
+    beyond ``max_motion_*`` from ``prediction``. Returns (pose or None, inliers, outlier
+    ids, RMS px, 6x6 covariance from the inliers' reprojection errors)."""
+    has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
+    reference = has & world_map.is_reference(tracks.ids)  # a loaded map's: they alone when enough
+    has = reference if reference.sum() >= o.min_reference_points else has
+    ids = tracks.ids[has]
+    if len(ids) < o.min_pnp_inliers:
+        return None, len(ids), np.zeros(0, np.int64), 0.0, None
+    obj = np.array([world_map.points[int(t)] for t in ids])
+    img = xn[has]
+    eye = np.eye(3)
+    found = pnp_ransac(obj, img, o.pnp_reproj_px / fx, o.pnp_iterations, cv2.SOLVEPNP_SQPNP)
+    if found is None or len(found[2]) < o.min_pnp_inliers:
+        return None, 0 if found is None else len(found[2]), np.zeros(0, np.int64), 0.0, None
+    rvec, tvec, inl = found
+    mask = np.zeros(len(ids), bool)
+    mask[inl] = True
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
+    for _ in range(2):  # refine on the inliers, then re-select them with the refined pose
+        rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], eye, None, rvec, tvec, criteria)
+        T_c_w = Transform.from_rvec_tvec(rvec, tvec)
+        proj, z = project_normalised(T_c_w, obj)
+        err = np.linalg.norm(proj - img, axis=1) * fx
+        # Tracks that drifted along an edge or sit on an occlusion boundary err by a few
+        # tenths of a pixel: a robust (MAD) threshold keeps them out of the refinement.
+        spread = 3.0 * 1.4826 * float(np.median(err[mask])) if mask.any() else o.pnp_reproj_px
+        mask = (z > 0) & (err <= min(o.pnp_reproj_px, max(o.pnp_min_reproj_px, spread)))
+        if mask.sum() < o.min_pnp_inliers:
+            return None, int(mask.sum()), ids[~mask], 0.0, None
+    pose = T_c_w.inverse()
+    drop = ids[~mask]
+    if not np.all(np.isfinite(pose.matrix())):
+        return None, 0, drop, 0.0, None
+    if prediction is not None and (np.linalg.norm(pose.translation - prediction.translation) > o.max_motion_m
+                                   or np.degrees(pose.rotation_angle_to(prediction)) > o.max_motion_deg):
+        return None, int(mask.sum()), drop, 0.0, None
+    rms = float(np.sqrt(np.mean(err[mask] ** 2)))
+    fit = fit_pose(pose, obj[mask], img[mask], None, fx=fx, sigma_px=max(rms, o.track_sigma_px),
+                   iterations=0)
+    return pose, int(mask.sum()), drop, rms, None if fit is None else fit.covariance
 
 
 @dataclass(frozen=True)

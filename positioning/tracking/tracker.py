@@ -52,7 +52,7 @@ from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import fit_pose, pnp_ransac
+from positioning.tracking.pose_fit import pose_from_map
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
@@ -114,7 +114,8 @@ class Tracker:
             return self._initialising(stamp_ns, tracks, xn, trusted)
 
         prediction = self.predict(stamp_ns)
-        tracked, inliers, drop, rms, covariance = self._pnp(tracks, xn, prediction)
+        tracked, inliers, drop, rms, covariance = pose_from_map(self.map, tracks, xn, prediction, self.options,
+                                                                self.fx)
         if self.odometry is not None:  # the wheels' motion since the last pose: a relative-motion factor
             tracked, covariance = self.odometry.fuse(tracked, covariance, self._last, self._last_stamp, stamp_ns)
         held = None
@@ -370,50 +371,6 @@ class Tracker:
     def _jumped(self, a: Transform, b: Transform) -> bool:
         return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
                 or np.degrees(a.rotation_angle_to(b)) > self.options.relocalised_jump_deg)
-
-    def _pnp(self, tracks: Tracks, xn: np.ndarray, prediction: Transform | None
-             ) -> tuple[Transform | None, int, np.ndarray, float, np.ndarray | None]:
-        """Pose from the tracks with map points: (pose or None, inliers, outlier ids, RMS px,
-        6x6 covariance from the inliers' reprojection errors)."""
-        o = self.options
-        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
-        reference = has & self.map.is_reference(tracks.ids)  # a loaded map's: they alone when enough
-        has = reference if reference.sum() >= o.min_reference_points else has
-        ids = tracks.ids[has]
-        if len(ids) < o.min_pnp_inliers:
-            return None, len(ids), np.zeros(0, np.int64), 0.0, None
-        obj = np.array([self.map.points[int(t)] for t in ids])
-        img = xn[has]
-        eye = np.eye(3)
-        found = pnp_ransac(obj, img, o.pnp_reproj_px / self.fx, o.pnp_iterations, cv2.SOLVEPNP_SQPNP)
-        if found is None or len(found[2]) < o.min_pnp_inliers:
-            return None, 0 if found is None else len(found[2]), np.zeros(0, np.int64), 0.0, None
-        rvec, tvec, inl = found
-        mask = np.zeros(len(ids), bool)
-        mask[inl] = True
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
-        for _ in range(2):  # refine on the inliers, then re-select them with the refined pose
-            rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], eye, None, rvec, tvec, criteria)
-            T_c_w = Transform.from_rvec_tvec(rvec, tvec)
-            proj, z = project_normalised(T_c_w, obj)
-            err = np.linalg.norm(proj - img, axis=1) * self.fx
-            # Tracks that drifted along an edge or sit on an occlusion boundary err by a few
-            # tenths of a pixel: a robust (MAD) threshold keeps them out of the refinement.
-            spread = 3.0 * 1.4826 * float(np.median(err[mask])) if mask.any() else o.pnp_reproj_px
-            mask = (z > 0) & (err <= min(o.pnp_reproj_px, max(o.pnp_min_reproj_px, spread)))
-            if mask.sum() < o.min_pnp_inliers:
-                return None, int(mask.sum()), ids[~mask], 0.0, None
-        pose = T_c_w.inverse()
-        drop = ids[~mask]
-        if not np.all(np.isfinite(pose.matrix())):
-            return None, 0, drop, 0.0, None
-        if prediction is not None and (np.linalg.norm(pose.translation - prediction.translation) > o.max_motion_m
-                                       or np.degrees(pose.rotation_angle_to(prediction)) > o.max_motion_deg):
-            return None, int(mask.sum()), drop, 0.0, None
-        rms = float(np.sqrt(np.mean(err[mask] ** 2)))
-        fit = fit_pose(pose, obj[mask], img[mask], None, fx=self.fx, sigma_px=max(rms, o.track_sigma_px),
-                       iterations=0)
-        return pose, int(mask.sum()), drop, rms, None if fit is None else fit.covariance
 
     def _fuse(self, trusted: TargetObservation, tracks: Tracks, xn: np.ndarray, start: Transform) -> Transform:
         """One pose from the target's corners (fixed world points) and the map points
