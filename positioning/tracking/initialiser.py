@@ -6,6 +6,14 @@ target pose: the metric relative pose ``dT = T_B * T_A^-1`` comes from the two t
 poses, the tracks common to A and B are triangulated with it, and the map is initialised
 when more than ``min_points`` points pass cheirality, reprojection and parallax checks.
 
+When the target leaves the view before the median parallax is reached (backing off the
+cube in a hall whose walls are 10-30 m away, the cube small at the image's edge), the last
+trusted frame B that Algorithm 2 weighed (of those, the one whose matches have the most
+parallax of their own) is the longest metric baseline the target will give, and so it is when the reference's tracks run out (the baseline will grow no longer):
+``on_departure`` initialises on it with the median test left out: each match's own
+rotation-compensated parallax must reach ``min_point_parallax_deg`` instead, besides the
+points' reprojection and cheirality checks, and more than ``min_points`` of them are needed.
+
 Unlike a five-point initialisation, nothing here estimates the relative pose from the
 features, so a scene that is nearly planar or far away does not break it; the features
 only need enough parallax for their depths. Every refusal says why (``InitStatus``); the
@@ -15,10 +23,12 @@ thresholds are the options' and are never relaxed.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from calib.camera_info import CameraCalibration
+from positioning.camera_model import project
 from positioning.geometry import Transform
 from positioning.tracking.options import InitOptions
 from positioning.tracking.twoview import rotation_compensated_parallax_deg, triangulate
@@ -55,6 +65,7 @@ class InitResult:
     track_ids: np.ndarray | None = None  # (M,) tracks that became points (INITIALISED)
     points_world: np.ndarray | None = None  # (M, 3)
     median_parallax_deg: float = 0.0
+    frame: InitFrame | None = None  # frame B (INITIALISED)
 
 
 class Initialiser:
@@ -64,9 +75,13 @@ class Initialiser:
         self.options = options
         self.fx = fx
         self.reference: InitFrame | None = None
+        # of the frames B weighed against the reference, the one whose matches have the
+        # most parallax of their own (and how many): the target's longest baseline so far
+        self.best: InitFrame | None = None
+        self._best_usable = 0
 
     def reset(self) -> None:
-        self.reference = None
+        self.reference, self.best = None, None
 
     def _trusted(self, frame: InitFrame) -> InitResult | None:
         if frame.T_world_camera is None:
@@ -90,7 +105,7 @@ class Initialiser:
                 f"{len(frame.track_ids)} features, the reference needs {self.options.min_features}",
                 self.reference,
             )
-        self.reference = frame
+        self.reference, self.best, self._best_usable = frame, None, 0
         return InitResult(InitStatus.REFERENCE_SET, f"reference frame with {len(frame.track_ids)} features", frame)
 
     def step(self, frame: InitFrame) -> InitResult:
@@ -104,18 +119,39 @@ class Initialiser:
         refusal = self._trusted(frame)
         if refusal is not None:
             return refusal
+        return self._pair(frame, median_test=True)
+
+    def on_departure(self) -> InitResult:
+        """The target has left the view before Algorithm 2 initialised: Algorithm 2 on the
+        reference and the last frame it weighed, without the median parallax test (the
+        same when ``step`` finds the reference's tracks run out). "The last frame" is the
+        one of those weighed whose matches have the most parallax of their own."""
+        if self.reference is None or self.best is None:
+            return InitResult(InitStatus.NO_TARGET_POSE, "no target pose in this frame", self.reference)
+        best, self.best = self.best, None  # tried once
+        return self._pair(best, median_test=False)
+
+    def _pair(self, frame: InitFrame, median_test: bool) -> InitResult:
         a = self.reference
         common, ia, ib = np.intersect1d(a.track_ids, frame.track_ids, assume_unique=True, return_indices=True)
         if len(common) <= self.options.min_points:
-            self.reference = None
-            return InitResult(
-                InitStatus.TOO_FEW_MATCHES,
-                f"{len(common)} features survive from the reference, more than {self.options.min_points} needed",
-            )
+            detail = f"{len(common)} features survive from the reference, more than {self.options.min_points} needed"
+            if median_test and self.best is not None:
+                # the reference's tracks run out: its baseline will grow no longer
+                result = self.on_departure()
+                if result.status is InitStatus.INITIALISED:
+                    return result
+                detail += f"; on the longest baseline, {result.detail}"
+            self.reference, self.best = None, None
+            return InitResult(InitStatus.TOO_FEW_MATCHES, detail)
         xa, xb = a.xn[ia], frame.xn[ib]
         parallax = rotation_compensated_parallax_deg(a.T_world_camera, frame.T_world_camera, xa, xb)
         median = float(np.median(parallax))
-        if median < self.options.min_parallax_deg:
+        if median_test:
+            usable = int(np.count_nonzero(parallax >= self.options.min_point_parallax_deg))
+            if self.best is None or usable >= self._best_usable:
+                self.best, self._best_usable = frame, usable
+        if median_test and median < self.options.min_parallax_deg:
             return InitResult(
                 InitStatus.TOO_LITTLE_PARALLAX,
                 f"median parallax {median:.2f} deg, {self.options.min_parallax_deg} deg needed",
@@ -125,15 +161,35 @@ class Initialiser:
             a.T_world_camera, frame.T_world_camera, xa, xb, self.fx,
             self.options.max_reproj_px, self.options.min_point_parallax_deg,
         )
-        survivors = int(result.good.sum())
+        good = result.good
+        if not median_test:
+            # the median test stood for the baseline; without it each match's own
+            # rotation-compensated parallax must (a pure rotation triangulates noise)
+            good = good & (parallax >= self.options.min_point_parallax_deg)
+        result = replace(result, good=good)
+        survivors = int(good.sum())
         if survivors <= self.options.min_points:
             return InitResult(
                 InitStatus.TOO_FEW_POINTS,
                 f"{survivors} of {len(common)} points pass the checks, more than {self.options.min_points} needed",
                 a, median_parallax_deg=median,
             )
+        self.best = None  # done
         return InitResult(
             InitStatus.INITIALISED,
-            f"{survivors} points from {len(common)} matches, median parallax {median:.2f} deg",
-            a, common[result.good], result.points_world[result.good], median,
+            f"{survivors} points from {len(common)} matches, median parallax {median:.2f} deg"
+            + ("" if median_test else " (the target's last baseline)"),
+            a, common[result.good], result.points_world[result.good], median, frame,
         )
+
+
+def out_of_view(pose: Transform, points_world: np.ndarray, calibration: CameraCalibration) -> bool:
+    """Does none of ``points_world`` (the target's corners) lie in the image seen from
+    ``pose``? The target has left the view, rather than been missed in a frame that shows it."""
+    camera = pose.inverse().apply(points_world)
+    front = camera[:, 2] > 1e-3
+    if not front.any():
+        return True
+    pixels = project(camera[front], calibration)
+    return not np.any((pixels[:, 0] >= 0) & (pixels[:, 0] < calibration.width) & (pixels[:, 1] >= 0)
+                      & (pixels[:, 1] < calibration.height))

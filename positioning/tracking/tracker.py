@@ -3,7 +3,10 @@
 Per frame it takes feature tracks (ids and pixels, from ``features.KltFrontEnd`` or any
 other source) and, when the target is in view, a trusted target pose with its corners.
 
-- Before a map exists it runs the paper's Algorithms 1 and 2 (``initialiser``).
+- Before a map exists it runs the paper's Algorithms 1 and 2 (``initialiser``); when the
+  target has gone before Algorithm 2's median parallax (out of the view, the hold on rays
+  ended, or the reference's tracks run out), the map begins on the longest baseline the
+  target gave (``Initialiser.on_departure``).
 - Afterwards the pose comes from PnP with RANSAC on the map points' tracks, refined with
   Levenberg-Marquardt on the inliers, refused 0.5 m or 5 deg from the motion model's.
 - While the target is trusted, its pose is the published pose and keyframes made then
@@ -48,7 +51,13 @@ from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.tracking import bundle
 from positioning.tracking.hold import Drift, RayHold, position_sigma
-from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
+from positioning.tracking.initialiser import (
+    InitFrame,
+    Initialiser,
+    InitResult,
+    InitStatus,
+    out_of_view,
+)
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
@@ -89,6 +98,7 @@ class Tracker:
         self._frame_keyframe = None
         self._frame_sigma = 0.0  # this frame's pose: its own position standard deviation
         self._reference_target: TargetObservation | None = None
+        self._best_target: TargetObservation | None = None  # of the initialiser's best frame B
         self._kf_points_at_insert = 0
         self._frames_since_keyframe = 0
         self._target_seen = False  # the last frame had a trusted target pose
@@ -250,6 +260,17 @@ class Tracker:
             prediction = self.predict(stamp_ns)
             held = None if prediction is None else self._hold.hold(stamp_ns, self._last, self._last_stamp,
                                                                     prediction, tracks, xn, self.map)
+            best = self._best_target
+            if best is not None and (held is None or out_of_view(held[0], best.corners_world, self.calibration)):
+                # the target has left the view (or nothing holds the pose without it) before
+                # Algorithm 2's median parallax: the map begins on the target's last baseline
+                result = self.initialiser.on_departure()
+                self._best_target = None
+                if result.status is InitStatus.INITIALISED:
+                    self._start_map(result, best)
+                    self._hold.end()
+                    log.debug("tracker.initialised", detail=result.detail)
+                    return replace(self.step(stamp_ns, tracks, self._frame_target), init_status=result.status)
             if held is None:
                 self._hold.end()
                 return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
@@ -277,22 +298,36 @@ class Tracker:
             return TrackerOutput(FrameResult(estimate, "ok", "initialising: reference frame"), True, empty,
                                  InitStatus.REFERENCE_SET)
         result = self.initialiser.step(frame)
+        best = self._best_target
+        if self.initialiser.best is frame or self.initialiser.best is None:
+            self._best_target = trusted if self.initialiser.best is frame else None
         if result.status is InitStatus.TOO_FEW_MATCHES:
             return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status)
         if result.status is not InitStatus.INITIALISED:
             return TrackerOutput(FrameResult(estimate, "ok", result.detail), False, empty, result.status)
-        a, ta = result.reference, self._reference_target
+        if result.frame is not frame:
+            # the reference's tracks ran out: the map begins on the last frame weighed, and
+            # this frame is tracked on it
+            self._start_map(result, best)
+            log.debug("tracker.initialised", detail=result.detail)
+            return replace(self.step(stamp_ns, tracks, self._frame_target), init_status=result.status)
+        self._start_map(result, trusted)
+        self._frame_pose = trusted.T_world_camera
+        log.debug("tracker.initialised", detail=result.detail)
+        return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
+
+    def _start_map(self, result: InitResult, target_b: TargetObservation) -> None:
+        """The map of an initialisation: keyframes A and B, anchored on the target, and the points."""
+        a, ta, b = result.reference, self._reference_target, result.frame
         kf_a = self.map.add_keyframe(a.stamp_ns, a.T_world_camera, a.track_ids, a.xn,
                                      ta.corners_world, undistort(ta.corners_px, self.calibration))
-        kf_b = self.map.add_keyframe(stamp_ns, trusted.T_world_camera, tracks.ids, xn,
-                                     trusted.corners_world, undistort(trusted.corners_px, self.calibration))
+        kf_b = self.map.add_keyframe(b.stamp_ns, b.T_world_camera, b.track_ids, b.xn,
+                                     target_b.corners_world, undistort(target_b.corners_px, self.calibration))
         for track_id, point in zip(result.track_ids, result.points_world, strict=True):
             self.map.add_point(int(track_id), point, kf_a.kf_id)
-        self.initialised, self._frame_keyframe, self._frame_pose = True, kf_b, trusted.T_world_camera
+        self.initialised, self._frame_keyframe = True, kf_b
         self._kf_points_at_insert, self._frames_since_keyframe = len(result.track_ids), 0
-        log.debug("tracker.initialised", detail=result.detail)
         self._schedule_bundle()
-        return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
 
     # ------------------------------------------------------------------ tracking
     def predict(self, stamp_ns: int) -> Transform | None:
