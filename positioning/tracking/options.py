@@ -80,10 +80,13 @@ class BundleOptions:
     # late ours is far better (0.52-0.91 against 2.85-4.03 mm), and live ours takes ~36 ms
     # a window where SciPy's many small calls, waiting for the GIL, take 0.7-0.9 s.
     solver: Literal["schur", "scipy"] = "schur"
-    # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py). A floor of
-    # 1e3 held far points' depths while KLT tracks drifted; with aligned tracks it only
-    # slows convergence (paper 20 s, 3 frames late: 3.9-12.3 mm with it, 0.52-0.91 without).
-    min_damping: float = 0.0
+    # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py): a step along
+    # what no observation constrains costs this much, so the window cannot slide there (a
+    # turn on the camera's own axis leaves the points' scale about it unobserved; with no
+    # floor one window scaled every point 9x in 5 frames). 1 is a thousandth of what once
+    # held far points' depths against drifting tracks (1e3), and below what any observed
+    # direction carries.
+    min_damping: float = 1.0
     max_iterations: int = 10  # residual evaluations per robust round (SciPy max_nfev)
     robust_rounds: int = 2  # reweighting rounds (Huber weights from the last residuals)
     huber_px: float = 1.5

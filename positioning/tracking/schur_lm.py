@@ -10,10 +10,9 @@ the ~1000 points. One step costs a few vectorised NumPy products, where SciPy's
 
 The damping update follows Nielsen (Madsen, Nielsen & Tingleff, "Methods for non-linear
 least squares problems", 2004, section 3.2). The damping is Levenberg's (``damping * I``,
-not Marquardt's diagonal of J^T J) and may have a floor, ``min_damping`` (pixels^2 per
-(metre or radian)^2). The default has none: a floor of 1e3 once held far points' depths
-near their triangulated values while KLT tracks drifted, and stopped helping once the
-tracks were aligned to their birth patches (patch_alignment.py; docs/tracker.md).
+not Marquardt's diagonal of J^T J) and has a floor, ``min_damping`` (pixels^2 per
+(metre or radian)^2): the directions no observation constrains (the scale of points seen
+from one camera centre) are held by it instead of taking the solver's arbitrary step.
 """
 
 from __future__ import annotations
