@@ -7,12 +7,13 @@ poses, the tracks common to A and B are triangulated with it, and the map is ini
 when more than ``min_points`` points pass cheirality, reprojection and parallax checks.
 
 When the target leaves the view before the median parallax is reached (backing off the
-cube in a hall whose walls are 10-30 m away, the cube small at the image's edge), the last
-trusted frame B that Algorithm 2 weighed (of those, the one whose matches have the most
-parallax of their own) is the longest metric baseline the target will give, and so it is when the reference's tracks run out (the baseline will grow no longer):
-``on_departure`` initialises on it with the median test left out: each match's own
-rotation-compensated parallax must reach ``min_point_parallax_deg`` instead, besides the
-points' reprojection and cheirality checks, and more than ``min_points`` of them are needed.
+cube in a hall whose walls are 10-30 m away, the cube small at the image's edge), or the
+reference's tracks run out, the baseline will grow no longer: of the frames B Algorithm 2
+weighed, the one whose matches have the most parallax of their own is the longest metric
+baseline the target gave. ``on_departure`` initialises on it with the median test left
+out: each match's own rotation-compensated parallax must reach ``min_point_parallax_deg``
+instead, besides the points' reprojection and cheirality checks, and more than
+``min_points`` of them are needed.
 
 Unlike a five-point initialisation, nothing here estimates the relative pose from the
 features, so a scene that is nearly planar or far away does not break it; the features
@@ -81,7 +82,7 @@ class Initialiser:
         self._best_usable = 0
 
     def reset(self) -> None:
-        self.reference, self.best = None, None
+        self.reference, self.best, self._best_usable = None, None, 0
 
     def _trusted(self, frame: InitFrame) -> InitResult | None:
         if frame.T_world_camera is None:
@@ -123,9 +124,9 @@ class Initialiser:
 
     def on_departure(self) -> InitResult:
         """The target has left the view before Algorithm 2 initialised: Algorithm 2 on the
-        reference and the last frame it weighed, without the median parallax test (the
-        same when ``step`` finds the reference's tracks run out). "The last frame" is the
-        one of those weighed whose matches have the most parallax of their own."""
+        reference and ``best`` (the frame weighed whose matches have the most parallax of
+        their own), without the median parallax test; ``step`` does the same when the
+        reference's tracks run out. Each ``best`` is tried once."""
         if self.reference is None or self.best is None:
             return InitResult(InitStatus.NO_TARGET_POSE, "no target pose in this frame", self.reference)
         best, self.best = self.best, None  # tried once
@@ -178,7 +179,7 @@ class Initialiser:
         return InitResult(
             InitStatus.INITIALISED,
             f"{survivors} points from {len(common)} matches, median parallax {median:.2f} deg"
-            + ("" if median_test else " (the target's last baseline)"),
+            + ("" if median_test else " (the target's longest baseline)"),
             a, common[result.good], result.points_world[result.good], median, frame,
         )
 

@@ -263,7 +263,7 @@ class Tracker:
             best = self._best_target
             if best is not None and (held is None or out_of_view(held[0], best.corners_world, self.calibration)):
                 # the target has left the view (or nothing holds the pose without it) before
-                # Algorithm 2's median parallax: the map begins on the target's last baseline
+                # Algorithm 2's median parallax: the map begins on the target's longest baseline
                 result = self.initialiser.on_departure()
                 self._best_target = None
                 if result.status is InitStatus.INITIALISED:
@@ -306,7 +306,7 @@ class Tracker:
         if result.status is not InitStatus.INITIALISED:
             return TrackerOutput(FrameResult(estimate, "ok", result.detail), False, empty, result.status)
         if result.frame is not frame:
-            # the reference's tracks ran out: the map begins on the last frame weighed, and
+            # the reference's tracks ran out: the map begins on the longest baseline weighed, and
             # this frame is tracked on it
             self._start_map(result, best)
             log.debug("tracker.initialised", detail=result.detail)
