@@ -111,6 +111,28 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
     return pose, int(mask.sum()), drop, rms, None if fit is None else fit.covariance
 
 
+def pose_from_target_and_map(world_map: Map, corners_world: np.ndarray, corners_xn: np.ndarray, tracks: Tracks,
+                             xn: np.ndarray, start: Transform, max_reproj_px: float, fx: float) -> Transform | None:
+    """One pose from the target's corners (fixed world points, ``corners_xn`` their
+    normalised coordinates) and the map points together, refined from ``start`` with the
+    map points within ``max_reproj_px`` of it: the map, anchored on many target frames by
+    bundle adjustment, averages out the corner noise of a single frame. None when the
+    refinement gives no finite pose."""
+    has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
+    obj = np.concatenate([corners_world, np.array([world_map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)])
+    img = np.concatenate([corners_xn, xn[has]])
+    T_c_w = start.inverse()
+    proj, z = project_normalised(T_c_w, obj)
+    keep = (z > 0) & (np.linalg.norm(proj - img, axis=1) * fx <= max_reproj_px)
+    keep[: len(corners_world)] = True
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
+    # (3, 1) vectors: OpenCV 5 leaves (3,) ones untouched without a word
+    rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], np.eye(3), None, T_c_w.rvec().reshape(3, 1),
+                                      T_c_w.translation.reshape(3, 1).copy(), criteria)
+    fused = Transform.from_rvec_tvec(rvec, tvec).inverse()
+    return fused if np.all(np.isfinite(fused.matrix())) else None
+
+
 @dataclass(frozen=True)
 class Rays:
     """Tracks without a point: where each was born and how it is seen now."""

@@ -41,12 +41,11 @@ from __future__ import annotations
 import concurrent.futures
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import structlog
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import project, project_normalised, undistort
+from positioning.camera_model import project, undistort
 from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.tracking import bundle
@@ -61,7 +60,7 @@ from positioning.tracking.initialiser import (
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import pose_from_map
+from positioning.tracking.pose_fit import pose_from_map, pose_from_target_and_map
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
@@ -155,7 +154,10 @@ class Tracker:
                 log.debug("tracker.corrected", jump_m=float(np.linalg.norm(pose.translation - before.translation)))
                 state = PoseState.RELOCALISED if self._jumped(before, pose) else state
             if tracked is not None and state is PoseState.TARGET and self.options.fuse_target_with_map:
-                pose = self._fuse(trusted, tracks, xn, pose)
+                fused = pose_from_target_and_map(self.map, trusted.corners_world,
+                                                 undistort(trusted.corners_px, self.calibration), tracks, xn, pose,
+                                                 self.options.pnp_reproj_px, self.fx)
+                pose = fused if fused is not None and not self._jumped(fused, pose) else pose
             estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
                                     trusted.covariance)
         elif tracked is not None or held is not None:
@@ -267,10 +269,7 @@ class Tracker:
                 result = self.initialiser.on_departure()
                 self._best_target = None
                 if result.status is InitStatus.INITIALISED:
-                    self._start_map(result, best)
-                    self._hold.end()
-                    log.debug("tracker.initialised", detail=result.detail)
-                    return replace(self.step(stamp_ns, tracks, self._frame_target), init_status=result.status)
+                    return self._begin_on_earlier_frame(result, best, stamp_ns, tracks)
             if held is None:
                 self._hold.end()
                 return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
@@ -305,19 +304,23 @@ class Tracker:
             return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status)
         if result.status is not InitStatus.INITIALISED:
             return TrackerOutput(FrameResult(estimate, "ok", result.detail), False, empty, result.status)
-        if result.frame is not frame:
-            # the reference's tracks ran out: the map begins on the longest baseline weighed, and
-            # this frame is tracked on it
-            self._start_map(result, best)
-            log.debug("tracker.initialised", detail=result.detail)
-            return replace(self.step(stamp_ns, tracks, self._frame_target), init_status=result.status)
+        if result.frame is not frame:  # the reference's tracks ran out: the longest baseline weighed
+            return self._begin_on_earlier_frame(result, best, stamp_ns, tracks)
         self._start_map(result, trusted)
         self._frame_pose = trusted.T_world_camera
-        log.debug("tracker.initialised", detail=result.detail)
         return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
+
+    def _begin_on_earlier_frame(self, result: InitResult, target_b: TargetObservation, stamp_ns: int,
+                                tracks: Tracks) -> TrackerOutput:
+        """The map begins on an earlier frame B (``Initialiser.on_departure``), and this
+        frame is tracked on it."""
+        self._start_map(result, target_b)
+        self._hold.end()
+        return replace(self.step(stamp_ns, tracks, self._frame_target), init_status=result.status)
 
     def _start_map(self, result: InitResult, target_b: TargetObservation) -> None:
         """The map of an initialisation: keyframes A and B, anchored on the target, and the points."""
+        log.debug("tracker.initialised", detail=result.detail)
         a, ta, b = result.reference, self._reference_target, result.frame
         kf_a = self.map.add_keyframe(a.stamp_ns, a.T_world_camera, a.track_ids, a.xn,
                                      ta.corners_world, undistort(ta.corners_px, self.calibration))
@@ -406,25 +409,6 @@ class Tracker:
     def _jumped(self, a: Transform, b: Transform) -> bool:
         return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
                 or np.degrees(a.rotation_angle_to(b)) > self.options.relocalised_jump_deg)
-
-    def _fuse(self, trusted: TargetObservation, tracks: Tracks, xn: np.ndarray, start: Transform) -> Transform:
-        """One pose from the target's corners (fixed world points) and the map points
-        together: the map, anchored on many target frames by bundle adjustment, averages
-        out the corner noise of a single frame."""
-        has = np.array([int(t) in self.map.points for t in tracks.ids], dtype=bool)
-        obj = np.concatenate([trusted.corners_world, np.array([self.map.points[int(t)] for t in tracks.ids[has]])
-                              .reshape(-1, 3)])
-        img = np.concatenate([undistort(trusted.corners_px, self.calibration), xn[has]])
-        T_c_w = start.inverse()
-        proj, z = project_normalised(T_c_w, obj)
-        keep = (z > 0) & (np.linalg.norm(proj - img, axis=1) * self.fx <= self.options.pnp_reproj_px)
-        keep[: len(trusted.corners_world)] = True
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
-        # (3, 1) vectors: OpenCV 5 leaves (3,) ones untouched without a word
-        rvec, tvec = cv2.solvePnPRefineLM(obj[keep], img[keep], np.eye(3), None, T_c_w.rvec().reshape(3, 1),
-                                          T_c_w.translation.reshape(3, 1).copy(), criteria)
-        fused = Transform.from_rvec_tvec(rvec, tvec).inverse()
-        return fused if np.all(np.isfinite(fused.matrix())) and not self._jumped(fused, start) else start
 
     def _maybe_keyframe(self, stamp_ns: int, pose: Transform, tracks: Tracks, xn: np.ndarray,
                         trusted: TargetObservation | None, inliers: int, forced: bool) -> bool:
