@@ -33,9 +33,9 @@ def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
 
     kept, original = [], bundle.solve
 
-    def keeping(problem, options, fx):
+    def keeping(problem, options, fx, sigma_px=None):
         kept.append((problem, options, fx))
-        return original(problem, options, fx)
+        return original(problem, options, fx, sigma_px)
 
     bundle.solve = keeping
     processor = TrackingProcessor(make_cube(), read_camera_info(sequence / "camera.yaml"), in_loop_options())

@@ -21,6 +21,7 @@ from positioning.evaluation import absolute_trajectory_error
 from positioning.geometry import Transform, look_at
 from positioning.target import make_cube
 from positioning.tracking.bundle import apply_solution, build_problem, solve
+from positioning.tracking.hold import Drift
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.options import (
@@ -306,6 +307,62 @@ def test_bundle_adjustment_pulls_a_perturbed_window_back_onto_the_target():
     # a solution for a map that has moved since is not applied
     world_map.correct(Transform.identity())
     assert not apply_solution(world_map, solution)
+
+
+def test_the_scale_variance_bundle_adjustment_claims_covers_its_scale_error():
+    """Thirty windows of five keyframes held by their two oldest (no target), each with new
+    0.3 px noise on the tracks: the window's scale error (the mean relative error of its
+    points' distances from the newest keyframe) squared, over the variance the solution
+    claims for it, averages about 1 (1 degree of freedom): neither far above (claims too
+    much) nor far below (claims too little). Every point here is placed alike, so the
+    weighted mean the solution means is the plain mean."""
+    source = SyntheticTracks(room_points(3), seed=4)
+    poses = [look_at(np.array([-1.5 + 0.1 * k, -1.8, 0.5]), np.zeros(3)) for k in range(5)]
+    ids = visible_ids(source, poses)
+    ratios = []
+    for trial in range(30):
+        rng = np.random.default_rng(100 + trial)
+        world_map = Map()
+        for k, pose in enumerate(poses):
+            pc = pose.inverse().apply(source.points[ids])
+            xn = pc[:, :2] / pc[:, 2:] + rng.normal(0, 0.3 / CAL.fx, (len(ids), 2))
+            start = Transform(pose.rotation, pose.translation + (rng.normal(0, 0.01, 3) if k >= 2 else 0))
+            world_map.add_keyframe(k, start, ids, xn)
+        for t in ids:
+            world_map.add_point(int(t), source.points[t] + rng.normal(0, 0.03, 3), 0)
+        problem = build_problem(world_map, BundleOptions(window_keyframes=5))
+        assert list(problem.free) == [False, False, True, True, True]  # the gauge: the two oldest held
+        solution = solve(problem, BundleOptions(max_iterations=30), CAL.fx, sigma_px=0.3)
+        assert not solution.held_by_target
+        rays = solution.points - solution.T_world_camera[-1].translation
+        distance = np.linalg.norm(rays, axis=1)
+        true_distance = np.linalg.norm(source.points[solution.point_ids] - poses[-1].translation, axis=1)
+        scale_error = np.mean(distance / true_distance - 1.0)
+        ratios.append(scale_error**2 / solution.scale_var)
+    assert 0.4 < np.mean(ratios) < 2.5
+    assert np.mean(np.array(ratios) < 9.0) >= 0.9  # inside 3 sigma
+
+
+def test_the_drift_grows_with_the_path_at_the_scale_bundle_adjustment_measured():
+    """Windows held by keyframes walk the scale on (each adds the share of the window's
+    variance its new points are); one held by the target sets it; the position's standard deviation
+    grows by the scale's per metre travelled, never by less than ``drift_per_m``."""
+    options = TrackerOptions()
+    drift = Drift(options)
+    step = Transform(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    start, measured = Transform.identity(), np.zeros((6, 6))
+    drift.covariance(None, start, measured)
+    sigma = np.sqrt(drift.covariance(start, step, measured)[0, 0])  # 1 m at the floor's rate
+    assert sigma == pytest.approx(options.drift_floor_m + options.drift_per_m * 1.0)
+    for _ in range(4):  # four windows measuring a 2 % scale across them, each with a quarter of its points new
+        drift.scale_measured(0.02**2, 0.25, held_by_target=False)
+    assert np.sqrt(drift.scale_var) == pytest.approx(0.02)
+    sigma = np.sqrt(drift.covariance(step, Transform(np.eye(3), np.array([2.0, 0.0, 0.0])), measured)[0, 0])
+    assert sigma == pytest.approx(options.drift_floor_m + options.drift_per_m + 0.02)
+    drift.scale_measured(0.001**2, 0.5, held_by_target=True)  # the target's window: its scale
+    assert np.sqrt(drift.scale_var) == pytest.approx(0.001)
+    drift.reset()
+    assert drift.scale_var == 0.0 and drift.scaled_m == 0.0
 
 
 @pytest.mark.parametrize("seed", [5, 6, 7])

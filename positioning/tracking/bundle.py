@@ -23,7 +23,10 @@ by anchored keyframes are fixed world points: they hold the window in the target
 window are held fixed instead (position, orientation and scale gauge).
 
 The problem is a frozen snapshot of the map, so the solve can run in a worker thread
-while the frame loop goes on; the result says which map epoch it belongs to.
+while the frame loop goes on; the result says which map epoch it belongs to. Asked with an
+observation's noise, a solution also says how well its window fixes the map's scale
+against what holds it (``_scale_var``): the drift a tracking pose claims grows by it
+(``hold.Drift``).
 """
 
 from __future__ import annotations
@@ -74,6 +77,10 @@ class BundleSolution:
     final_rms_px: float
     evaluations: int
     seconds: float
+    # the variance of the relative scale of the window's points against what holds the
+    # window (``_scale_var``), None when not asked for or not observable
+    scale_var: float | None = None
+    held_by_target: bool = False  # the target's corners hold the window (its scale is the target's)
 
 
 def build_problem(world_map: Map, options: BundleOptions) -> BundleProblem | None:
@@ -155,13 +162,16 @@ def build_problem(world_map: Map, options: BundleOptions) -> BundleProblem | Non
 _BLAS = ThreadpoolController()
 
 
-def solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleSolution:
-    """Huber-weighted least squares over the free poses and all points of the problem."""
+def solve(problem: BundleProblem, options: BundleOptions, fx: float, sigma_px: float | None = None
+          ) -> BundleSolution:
+    """Huber-weighted least squares over the free poses and all points of the problem;
+    with ``sigma_px`` (an observation's noise) also the window's scale variance."""
     with _BLAS.limit(limits=1, user_api="blas"):
-        return _solve(problem, options, fx)
+        return _solve(problem, options, fx, sigma_px)
 
 
-def _solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleSolution:
+def _solve(problem: BundleProblem, options: BundleOptions, fx: float, sigma_px: float | None = None
+           ) -> BundleSolution:
     started = time.perf_counter()
     model = _Model(problem, fx, options.target_weight)
     x = np.zeros(6 * model.n_free + 3 * model.n_points)
@@ -187,6 +197,8 @@ def _solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleS
     limit = min(options.max_residual_px, max(options.min_residual_px, spread))
     bad = (per_obs > limit) | (depth <= 0) | ~finite
     poses = tuple(Transform(r, t).inverse() for r, t in zip(rotations, translations, strict=True))
+    scale_var = _scale_var(model, x, options, rotations, translations, points, sigma_px) \
+        if sigma_px is not None and model.n_free and model.n_points else None
     return BundleSolution(
         epoch=problem.epoch,
         points_added=problem.points_added,
@@ -199,7 +211,35 @@ def _solve(problem: BundleProblem, options: BundleOptions, fx: float) -> BundleS
         final_rms_px=float(np.sqrt(np.mean(final**2))) if len(final) else 0.0,
         evaluations=evaluations,
         seconds=time.perf_counter() - started,
+        scale_var=scale_var,
+        held_by_target=bool(len(problem.tgt_kf)),
     )
+
+
+def _scale_var(model: _Model, x: np.ndarray, options: BundleOptions, rotations: np.ndarray,
+               translations: np.ndarray, points: np.ndarray, sigma_px: float) -> float | None:
+    """The variance of the window's scale against what holds it (the keyframes held fixed,
+    the target's corners): of the mean relative change of its points' distances from the
+    newest free keyframe, each point weighed by how well its own observations place it
+    (``schur_lm.weighted_mean_variance``), with the observations' noise (``sigma_px``, the
+    target's corners ``target_weight`` times less, outliers down-weighted as in the last
+    robust round) and everything free adjusting. A depth that only a short baseline measures is as unsure
+    here as it is; a turn on the spot, its points held by the keyframes that made them,
+    measures no new scale and adds none."""
+    p = model.problem
+    per_pair = np.linalg.norm(model.residuals(x).reshape(-1, 2), axis=1)
+    weights = np.sqrt(np.minimum(1.0, options.huber_px / np.maximum(per_pair, 1e-12)))
+    obs_w, tgt_w = weights[: model.n_obs, None, None], weights[model.n_obs:, None, None]
+    j_pose, j_point, j_tgt = model.jacobian_blocks(x)
+    blocks = (j_pose * obs_w[p.free[p.obs_kf]], j_point * obs_w, j_tgt * tgt_w)
+    k = int(np.flatnonzero(p.free)[-1])
+    centre = -rotations[k].T @ translations[k]
+    rays = points - centre
+    distance = np.maximum(np.linalg.norm(rays, axis=1), 1e-9)
+    directions = rays / distance[:, None] ** 2  # d(relative distance) / dX
+    variance = schur_lm.weighted_mean_variance(model.residuals(x) * np.repeat(weights, 2), blocks,
+                                               model.structure, directions)
+    return None if variance is None else variance * sigma_px**2
 
 
 class _Model:

@@ -8,8 +8,9 @@ standard deviation grows with the time held; with too few rays as well it coasts
 motion model alone for at most ``max_coast_s``.
 
 ``Drift`` adds to a tracking pose's covariance what its own measurements cannot know: how
-far the map may have drifted since the target was last trusted, growing with the path
-and the rotation since.
+far the map may have drifted since the target was last trusted, growing with the path at
+the relative scale error bundle adjustment measures (a random walk as the map's points are
+replaced) and with the rotation since.
 """
 
 from __future__ import annotations
@@ -155,6 +156,8 @@ class Drift:
         self.path_m = 0.0
         self.turned_rad = 0.0
         self.floor_m = options.drift_floor_m
+        self.scale_var = 0.0  # variance of the map's relative scale error where the camera is
+        self.scaled_m = 0.0  # the position's standard deviation grown with the path at that scale
         self._agreement: collections.deque[float] = collections.deque(maxlen=30)  # metres
 
     def agreement(self, distance_m: float) -> None:
@@ -167,7 +170,7 @@ class Drift:
 
     def reset(self) -> None:
         """The target is trusted again: nothing has drifted since."""
-        self.path_m = self.turned_rad = 0.0
+        self.path_m = self.turned_rad = self.scaled_m = self.scale_var = 0.0
         agreement = float(np.sqrt(np.mean(np.square(self._agreement)))) if self._agreement else 0.0
         self.floor_m = max(self.options.drift_floor_m, agreement)
 
@@ -176,6 +179,18 @@ class Drift:
         """How much the position's standard deviation has grown since the target: the
         measure of drift ``Map.correct`` spreads a correction by."""
         return self.options.drift_per_m * self.path_m + self.options.drift_m_per_rad * self.turned_rad
+
+    def scale_measured(self, window_var: float, renewed: float, held_by_target: bool) -> None:
+        """A bundle adjustment's relative scale variance across its window
+        (``bundle._scale_var``). Held by the target, the window's scale is the map's. Held
+        by keyframes, the scale walks on as the points that carry it are replaced: by the
+        window's variance for a window of points all new, by the ``renewed`` share of it
+        for one whose points are partly new since the last (a turn on the spot, a keyframe
+        every frame, renews few and walks little)."""
+        if held_by_target:
+            self.scale_var = window_var
+        else:
+            self.scale_var += window_var * min(max(renewed, 0.0), 1.0)
 
     def relocalised(self, covariance: np.ndarray | None) -> None:
         """A relocalisation against keyframes: the map is built on from its pose, so its
@@ -188,14 +203,18 @@ class Drift:
                    ) -> np.ndarray | None:
         """``measured`` (this frame's own covariance) plus the drift since the target, a
         standard deviation growing with the path and rotation (``drift_per_m`` ...);
-        ``previous`` is the last frame's pose, from which the path goes on."""
+        ``previous`` is the last frame's pose, from which the path goes on. Each metre of it
+        adds the map's relative scale error (``scale_measured``), at least ``drift_per_m``."""
         if previous is not None:
-            self.path_m += float(np.linalg.norm(pose.translation - previous.translation))
+            step_m = float(np.linalg.norm(pose.translation - previous.translation))
+            self.path_m += step_m
+            # a map whose scale is off by s puts every metre travelled on it s off
+            self.scaled_m += max(self.options.drift_per_m, float(np.sqrt(self.scale_var))) * step_m
             self.turned_rad += float(previous.rotation_angle_to(pose))
         if measured is None:
             return None
         o = self.options
-        position_sigma = self.floor_m + self.grown_m
+        position_sigma = self.floor_m + self.scaled_m + self.options.drift_m_per_rad * self.turned_rad
         rotation_sigma = o.drift_rad_per_m * self.path_m + o.drift_rad_per_rad * self.turned_rad
         total = np.array(measured, dtype=np.float64, copy=True)
         total[:3, :3] += np.eye(3) * position_sigma**2

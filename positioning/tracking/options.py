@@ -168,9 +168,10 @@ class TrackerOptions:
     hold_velocity_half_life_s: float = 0.2
     track_sigma_px: float = 0.3  # a track's noise floor for covariances (KLT + alignment)
     # the map's drift since the target was last trusted, added to a tracking pose's
-    # covariance (standard deviations)
+    # covariance (standard deviations); the position's grows per metre of path by the
+    # relative scale error bundle adjustment measures (hold.Drift.scale_measured)
     drift_floor_m: float = 0.002  # never claimed better (the map agrees with the target to 1-2 mm)
-    drift_per_m: float = 0.003  # position, per metre of path
+    drift_per_m: float = 0.003  # position, per metre of path, at the least
     drift_m_per_rad: float = 0.002  # position, per radian turned
     drift_rad_per_m: float = 0.001  # orientation, per metre of path
     drift_rad_per_rad: float = 0.002  # orientation, per radian turned

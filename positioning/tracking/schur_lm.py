@@ -13,6 +13,9 @@ least squares problems", 2004, section 3.2). The damping is Levenberg's (``dampi
 not Marquardt's diagonal of J^T J) and has a floor, ``min_damping`` (pixels^2 per
 (metre or radian)^2): the directions no observation constrains (the scale of points seen
 from one camera centre) are held by it instead of taking the solver's arbitrary step.
+
+The same blocks, undamped, give the variance of a function of the points at the solution
+(``weighted_mean_variance``: the window's scale).
 """
 
 from __future__ import annotations
@@ -92,6 +95,20 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
     return LmResult(x, cost, evaluations)
 
 
+def weighted_mean_variance(residuals: np.ndarray, blocks: JacobianBlocks, structure: BlockStructure,
+                           directions: np.ndarray) -> float | None:
+    """The variance, for unit residual noise, of the mean of the points' changes along
+    ``directions`` ((P, 3) rows g_j: the change g_j . dX_j of point j), each point weighed
+    by how well its own observations fix that change (inversely to g_j^T V_j^-1 g_j, its
+    variance with the poses held): a point a single short baseline places counts for little,
+    as it does in a pose measured on all of them. The variance is the whole of it, the
+    poses free: from the inverse of J^T J by blocks, w^T V^-1 w + z^T S^-1 z with z = W V^-1 w
+    and S the reduced camera system. None when the system is singular."""
+    normal = _NormalEquations(structure)
+    normal.build(blocks, residuals)
+    return normal.weighted_mean_variance(np.asarray(directions, np.float64).reshape(-1, 3))
+
+
 class _NormalEquations:
     """J^T J and J^T r in blocks: U (poses), V (points, 3 x 3 each), W (pose-point)."""
 
@@ -153,6 +170,30 @@ class _NormalEquations:
         d_point = -(v_inv @ (g_point + back)[:, :, None])[:, :, 0]
         step = np.concatenate([d_pose, d_point.ravel()])
         return step if np.all(np.isfinite(step)) else None
+
+    def weighted_mean_variance(self, directions: np.ndarray) -> float | None:
+        """See ``weighted_mean_variance``. A point no observation places (one ray) is
+        eliminated with a vanishing prior on its position: it weighs nothing."""
+        s = self.s
+        scale = max(float(np.max(np.abs(self.v))) if self.v.size else 1.0, 1.0)
+        try:
+            v_inv = np.linalg.inv(self.v + 1e-12 * scale * np.eye(3))
+        except np.linalg.LinAlgError:
+            return None
+        own = np.einsum("pi,pij,pj->p", directions, v_inv, directions)
+        weights = 1.0 / np.maximum(own, 1e-300)
+        w = directions * (weights / np.sum(weights))[:, None]
+        v_w = (v_inv @ w[:, :, None])[:, :, 0]  # V^-1 w, (P, 3)
+        variance = float(np.sum(w * v_w))
+        if s.n_poses:
+            y = (self.w.reshape(-1, s.n_points, 3).transpose(1, 0, 2) @ v_inv).transpose(1, 0, 2)
+            schur = block_diag(*self.u) - y.reshape(6 * s.n_poses, -1) @ self.w.T
+            z = self.w @ v_w.ravel()
+            try:
+                variance += float(z @ np.linalg.solve(schur, z))
+            except np.linalg.LinAlgError:
+                return None
+        return variance if np.isfinite(variance) and variance > 0 else None
 
     def predicted_decrease(self, step: np.ndarray, damping: float) -> float:
         """L(0) - L(step) of the linear model: 0.5 step . (damping step - g)."""

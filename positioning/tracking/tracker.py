@@ -96,6 +96,7 @@ class Tracker:
         self._frame_stamp = 0
         self._frame_keyframe = None
         self._frame_sigma = 0.0  # this frame's pose: its own position standard deviation
+        self._scale_points_added = 0  # the map's points_added when the drift's scale was last measured
         self._reference_target: TargetObservation | None = None
         self._best_target: TargetObservation | None = None  # of the initialiser's best frame B
         self._kf_points_at_insert = 0
@@ -455,11 +456,12 @@ class Tracker:
         if problem is None:
             return
         if not self.options.bundle.background:
-            self._apply(bundle.solve(problem, self.options.bundle, self.fx))
+            self._apply(bundle.solve(problem, self.options.bundle, self.fx, self.options.track_sigma_px))
             return
         if self._executor is None:
             self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="cubeloc-ba")
-        self._pending = self._executor.submit(bundle.solve, problem, self.options.bundle, self.fx)
+        self._pending = self._executor.submit(bundle.solve, problem, self.options.bundle, self.fx,
+                                              self.options.track_sigma_px)
 
     def _collect_bundle(self, wait: bool) -> None:
         if self._pending is None or not (wait or self._pending.done()):
@@ -481,6 +483,11 @@ class Tracker:
 
     def _apply(self, solution: bundle.BundleSolution) -> None:
         applied = bundle.apply_solution(self.map, solution)
+        if applied and solution.scale_var is not None:
+            # the share of the window's points added since the last solution measured the scale
+            renewed = (solution.points_added - self._scale_points_added) / max(len(solution.point_ids), 1)
+            self._scale_points_added = solution.points_added
+            self._drift.scale_measured(solution.scale_var, renewed, solution.held_by_target)
         self.bundle_runs = [*self.bundle_runs[-19:], replace(solution, points=np.zeros((0, 3)))]
         log.debug("tracker.bundle", applied=applied, seconds=round(solution.seconds, 3),
                   rms_before=round(solution.initial_rms_px, 3), rms_after=round(solution.final_rms_px, 3))
