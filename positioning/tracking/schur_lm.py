@@ -155,9 +155,7 @@ class _NormalEquations:
             return None
         g_point = self.g_point
         if s.n_poses:
-            y = (self.w.reshape(-1, s.n_points, 3).transpose(1, 0, 2) @ v_inv).transpose(1, 0, 2)  # W V^-1
-            y = y.reshape(6 * s.n_poses, -1)
-            schur = block_diag(*u) - y @ self.w.T
+            y, schur = self._eliminate(u, v_inv)
             rhs = -self.g_pose.ravel() + y @ g_point.ravel()
             try:
                 d_pose = np.linalg.solve(schur, rhs)
@@ -170,6 +168,14 @@ class _NormalEquations:
         d_point = -(v_inv @ (g_point + back)[:, :, None])[:, :, 0]
         step = np.concatenate([d_pose, d_point.ravel()])
         return step if np.all(np.isfinite(step)) else None
+
+    def _eliminate(self, u: np.ndarray, v_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points eliminated: (W V^-1, the reduced camera system U - W V^-1 W^T) for the
+        pose blocks ``u`` and the inverted point blocks ``v_inv``."""
+        s = self.s
+        y = (self.w.reshape(-1, s.n_points, 3).transpose(1, 0, 2) @ v_inv).transpose(1, 0, 2)
+        y = y.reshape(6 * s.n_poses, -1)
+        return y, block_diag(*u) - y @ self.w.T
 
     def weighted_mean_variance(self, directions: np.ndarray) -> float | None:
         """See ``weighted_mean_variance``. A point no observation places (one ray) is
@@ -186,8 +192,7 @@ class _NormalEquations:
         v_w = (v_inv @ w[:, :, None])[:, :, 0]  # V^-1 w, (P, 3)
         variance = float(np.sum(w * v_w))
         if s.n_poses:
-            y = (self.w.reshape(-1, s.n_points, 3).transpose(1, 0, 2) @ v_inv).transpose(1, 0, 2)
-            schur = block_diag(*self.u) - y.reshape(6 * s.n_poses, -1) @ self.w.T
+            _, schur = self._eliminate(self.u, v_inv)
             z = self.w @ v_w.ravel()
             try:
                 variance += float(z @ np.linalg.solve(schur, z))
