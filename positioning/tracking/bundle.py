@@ -227,7 +227,8 @@ def _scale_var(model: _Model, x: np.ndarray, options: BundleOptions, rotations: 
     here as it is; a turn on the spot, its points held by the keyframes that made them,
     measures no new scale and adds none."""
     p = model.problem
-    per_pair = np.linalg.norm(model.residuals(x).reshape(-1, 2), axis=1)
+    residuals = model.residuals(x)
+    per_pair = np.linalg.norm(residuals.reshape(-1, 2), axis=1)
     weights = np.sqrt(np.minimum(1.0, options.huber_px / np.maximum(per_pair, 1e-12)))
     obs_w, tgt_w = weights[: model.n_obs, None, None], weights[model.n_obs:, None, None]
     j_pose, j_point, j_tgt = model.jacobian_blocks(x)
@@ -237,8 +238,8 @@ def _scale_var(model: _Model, x: np.ndarray, options: BundleOptions, rotations: 
     rays = points - centre
     distance = np.maximum(np.linalg.norm(rays, axis=1), 1e-9)
     directions = rays / distance[:, None] ** 2  # d(relative distance) / dX
-    variance = schur_lm.weighted_mean_variance(model.residuals(x) * np.repeat(weights, 2), blocks,
-                                               model.structure, directions)
+    variance = schur_lm.weighted_mean_variance(residuals * np.repeat(weights, 2), blocks, model.structure,
+                                               directions)
     return None if variance is None else variance * sigma_px**2
 
 
