@@ -100,13 +100,13 @@ def track_results(sequence: Path, calibration) -> list:
     """The tracker's ``FrameResult`` for each frame of a rendered sequence, in this process,
     bundle adjustment in the frame loop (deterministic), the cube's model and nothing else
     known."""
-    from drivers.sequence import read_mono_png, read_sequence_index
+    from drivers.sequence import read_image, read_sequence_index
     from positioning.target import make_cube
     from positioning.tracking.processor import TrackingProcessor
 
     processor = TrackingProcessor(make_cube(), calibration, in_loop_options())
     try:
-        return [processor.process(read_mono_png(e.path), e.stamp_ns, i)
+        return [processor.process(read_image(e.path), e.stamp_ns, i)
                 for i, e in enumerate(read_sequence_index(sequence))]
     finally:
         processor.close()

@@ -190,7 +190,7 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
     live tracks and how many of them have a map point, and the textured share of the view."""
     from bench.common import in_loop_options
     from calib.camera_info import read_camera_info
-    from drivers.sequence import read_mono_png, read_sequence_index
+    from drivers.sequence import read_image, read_sequence_index
     from positioning.target import make_cube
     from positioning.tracking.processor import TrackingProcessor
     from positioning.trajectory_io import read_tum
@@ -204,7 +204,7 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
     processor = TrackingProcessor(make_cube(), calibration, in_loop_options())
     try:
         for i, entry in enumerate(read_sequence_index(sequence)[: last]):
-            result = processor.process(read_mono_png(entry.path), entry.stamp_ns, i)
+            result = processor.process(read_image(entry.path), entry.stamp_ns, i)
             if i < first or (i - first) % every:
                 continue
             tracker, estimate = processor.tracker, result.estimate

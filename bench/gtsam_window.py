@@ -26,7 +26,7 @@ def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
     """(problem, options, fx) of the bundle adjustments the tracker ran on ``sequence``."""
     from bench.common import in_loop_options
     from calib.camera_info import read_camera_info
-    from drivers.sequence import read_mono_png, read_sequence_index
+    from drivers.sequence import read_image, read_sequence_index
     from positioning.target import make_cube
     from positioning.tracking import bundle
     from positioning.tracking.processor import TrackingProcessor
@@ -41,7 +41,7 @@ def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
     processor = TrackingProcessor(make_cube(), read_camera_info(sequence / "camera.yaml"), in_loop_options())
     try:
         for i, entry in enumerate(read_sequence_index(sequence)[:frames]):
-            processor.process(read_mono_png(entry.path), entry.stamp_ns, i)
+            processor.process(read_image(entry.path), entry.stamp_ns, i)
     finally:
         processor.close()
         bundle.solve = original

@@ -66,7 +66,7 @@ def _replay(sequence: Path, background: bool, frames: int | None = None, problem
     stamps running on. ``problems``, when given, receives the bundle adjustment problem of
     every new keyframe (for the solver comparison)."""
     from calib.camera_info import read_camera_info
-    from drivers.sequence import read_mono_png, read_sequence_index
+    from drivers.sequence import read_image, read_sequence_index
     from positioning.target import load_target
     from positioning.tracking import bundle
     from positioning.tracking.processor import TrackingProcessor
@@ -84,7 +84,7 @@ def _replay(sequence: Path, background: bool, frames: int | None = None, problem
     try:
         for k in range(count):
             entry = entries[cycle[k % len(cycle)]]
-            image = read_mono_png(entry.path)
+            image = read_image(entry.path)
             stamp = entries[0].stamp_ns + k * period
             started = time.perf_counter()
             keyframes = processor.tracker.map.next_kf_id
@@ -155,14 +155,14 @@ def _live(sequence: Path, options=None) -> dict:
     from calib.camera_info import read_camera_info
     from daemon.frame_queue import CapturedFrame, LatestFrameSlot
     from drivers.base import Frame
-    from drivers.sequence import read_mono_png, read_sequence_index
+    from drivers.sequence import read_image, read_sequence_index
     from positioning.evaluation import absolute_trajectory_error
     from positioning.target import load_target
     from positioning.tracking.processor import TrackingProcessor
     from positioning.trajectory_io import StampedPose, read_tum
 
     entries = read_sequence_index(sequence)
-    images = [read_mono_png(e.path) for e in entries]
+    images = [read_image(e.path) for e in entries]
     truth = read_tum(sequence / "groundtruth.tum")
     processor = TrackingProcessor(load_target(sequence / "target.yaml"), read_camera_info(sequence / "camera.yaml"),
                                   options)

@@ -26,6 +26,7 @@ from calib.detect import Detection, detect_board, diagnose_missing_board
 from calib.report import Verdict, judge
 from calib.solve import CalibrationError, Solution, SolveOptions, View, solve
 from cubeloc.errors import InputFileError
+from cubeloc.images import to_mono8
 
 
 @dataclass(frozen=True)
@@ -44,10 +45,13 @@ class CalibrationRun:
 
 
 def _decode(path: Path, data: bytes) -> np.ndarray:
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if image is None:
         raise InputFileError(f"{path}: not an image OpenCV can read (remove it from the set or re-export it)")
-    return image
+    try:
+        return to_mono8(image)  # 8- or 16-bit, grey or colour
+    except ValueError:
+        raise InputFileError(f"{path}: expected an 8- or 16-bit image, got {image.dtype}") from None
 
 
 def detect_images(paths: list[Path], board: BoardSpec, *, use_cache: bool = True) -> list[ImageDetection]:
@@ -90,7 +94,7 @@ def no_board_message(detections: list[ImageDetection], board: BoardSpec) -> str:
     """'0 of 25 images show a 9x6 chessboard; check ...' with the off-by-one hint."""
     message = f"0 of {len(detections)} images show {board.description}"
     sample = [d.path for d in detections[:4]]
-    images = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sample]
+    images = [_decode(p, p.read_bytes()) for p in sample if p.is_file()]
     hint = diagnose_missing_board([i for i in images if i is not None], board)
     if hint:
         return f"{message}; {hint}"

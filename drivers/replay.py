@@ -29,7 +29,7 @@ from drivers.base import (
     FrameTimeout,
     StreamBroken,
 )
-from drivers.sequence import SequenceEntry, read_mono_png, read_sequence_index
+from drivers.sequence import SequenceEntry, read_image, read_sequence_index
 
 log = structlog.get_logger()
 
@@ -96,7 +96,7 @@ class ReplayCamera(CameraBase):
                 if wait > 0:
                     time.sleep(wait)
             try:
-                image = read_mono_png(entry.path)
+                image = read_image(entry.path)
             except InputFileError as exc:  # as a camera's bad buffer: dropped and counted
                 self._position += 1
                 self._stats.incomplete += 1

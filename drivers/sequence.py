@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from cubeloc.errors import InputFileError
+from cubeloc.images import to_mono8
 
 CSV_HEADER = "#timestamp [ns],filename\n"
 
@@ -68,11 +69,16 @@ def read_sequence_index(root: str | os.PathLike[str]) -> list[SequenceEntry]:
     return entries
 
 
-def read_mono_png(path: Path) -> np.ndarray:
-    """An 8-bit mono image; raise InputFileError if it is missing or not 8-bit grey."""
-    data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
-    if data is None or data.size == 0:
-        raise InputFileError(f"{path}: image file missing or empty")
+def read_image(path: Path) -> np.ndarray:
+    """An 8-bit mono image from any image file OpenCV decodes, 8- or 16-bit, grey or colour
+    (``to_mono8``); raise InputFileError naming the file when it is missing, not an image,
+    or of another type (float)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: image not found")
+    data = np.fromfile(path, dtype=np.uint8)
+    if data.size == 0:
+        raise InputFileError(f"{path}: empty file, not an image")
     # OpenCV logs its own "[ WARN:0@...] PNG input buffer is incomplete" beside ours: not
     # while decoding here (the error below names the file and says what is wrong)
     level = cv2.utils.logging.getLogLevel()
@@ -83,11 +89,12 @@ def read_mono_png(path: Path) -> np.ndarray:
         cv2.utils.logging.setLogLevel(level)
     if image is None:
         raise InputFileError(f"{path}: not an image OpenCV can decode (truncated or corrupt)")
-    if image.dtype != np.uint8:
-        raise InputFileError(f"{path}: expected an 8-bit image, got {image.dtype}")
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    return np.ascontiguousarray(image)
+    try:
+        return to_mono8(image)
+    except ValueError:
+        raise InputFileError(f"{path}: expected an 8- or 16-bit image, got {image.dtype}") from None
+
+
 
 
 class SequenceWriter:

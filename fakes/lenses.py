@@ -10,7 +10,9 @@ shared with it.
 =========  =============================================================================
 
 ``paper_half`` is the paper's camera at 640x512 (f 833 px, HFOV 42 deg): the tracker
-tests' camera, for side-by-side rows; ``OTHER_LENSES`` are the three above.
+tests' camera, for side-by-side rows; ``OTHER_LENSES`` are the three above. ``euroc`` is
+the EuRoC MAV dataset's cam0 (752x480, f 458 px, its published plumb_bob calibration),
+whose real AprilGrid frame is in ``../shared/data/aprilgrid-real``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ LENSES: dict[str, tuple[int, int, float, tuple[float, float], tuple[float, ...],
     "wide": (640, 512, 450.0, (319.5, 255.5), (-0.25, 0.08, 0.0, 0.0, 0.0), "HFOV 71 deg, strong barrel"),
     "narrow": (640, 512, 1250.0, (319.5, 255.5), (-0.03, 0.0, 0.0, 0.0, 0.0), "HFOV 29 deg"),
     "vga": (640, 480, 600.0, (331.0, 247.0), (-0.12, 0.03, 0.001, -0.0005, 0.0), "HFOV 56 deg, centre off"),
+    "euroc": (752, 480, 458.654, (367.215, 248.375), (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0),
+              "EuRoC MAV cam0, HFOV 79 deg"),
     "paper_half": (640, 512, _PAPER.camera_matrix[0, 0] / 2.0, (319.5, 255.5), tuple(_PAPER.distortion),
                    "the paper's camera at half resolution"),
 }

@@ -1,8 +1,9 @@
 """What stands in the room: the target's faces as quads, lit, with tags drawn or hidden.
 
 For a cube target each face is one quad of the cube's side with its tag centred on it (a
-white margin around the black border, as printed). For any other target each tag is a
-plate: the tag with a one-cell white margin. Tag cells are tag36h11 (or the target's
+white margin around the black border, as printed). For a Kalibr AprilGrid each tag is a
+plate half a gap wider all round, with black squares touching its corners. For any other
+target each tag is a plate: the tag with a one-cell white margin. Tag cells are tag36h11 (or the target's
 family) bit patterns from ``cv2.aruco.generateImageMarker``, so the tag's 3-D corners
 TL, TR, BR, BL fall exactly on the outer corners of the marker image's black border.
 """
@@ -11,19 +12,11 @@ from __future__ import annotations
 
 import functools
 
-import cv2
 import numpy as np
 
 from fakes.surfaces import PlainShader, Quad, TagShader
+from positioning.tag_bits import tag_cells
 from positioning.target import Tag, Target
-
-# OpenCV dictionaries of the families a target file may name
-ARUCO_DICTIONARIES = {
-    "tag36h11": cv2.aruco.DICT_APRILTAG_36h11,
-    "tag36h10": cv2.aruco.DICT_APRILTAG_36h10,
-    "tag25h9": cv2.aruco.DICT_APRILTAG_25h9,
-    "tag16h5": cv2.aruco.DICT_APRILTAG_16h5,
-}
 
 # One light from above and to the side, so the faces of the cube differ in brightness
 # the way they do under a ceiling lamp; ``AMBIENT`` keeps the darkest face readable.
@@ -34,12 +27,10 @@ INK_BLACK = 0.06
 
 
 @functools.lru_cache(maxsize=64)
-def tag_bits(family: str, tag_id: int) -> np.ndarray:
-    """(N, N) float32 cells of a tag including its black border: 1 white, 0 black."""
-    dictionary = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARIES[family])
-    cells = dictionary.markerSize + 2  # data bits plus a one-cell black border
-    image = cv2.aruco.generateImageMarker(dictionary, tag_id, cells, borderBits=1)
-    bits = (image > 127).astype(np.float32)
+def tag_bits(family: str, tag_id: int, border_bits: int = 1) -> np.ndarray:
+    """(N, N) float32 cells of a tag including its black border: 1 white, 0 black (the
+    drawing ``positioning.tag_bits`` models the edges of)."""
+    bits = tag_cells(family, tag_id, border_bits).astype(np.float32)
     bits.setflags(write=False)
     return bits
 
@@ -63,20 +54,28 @@ def target_quads(
     glare_tag: int | None = None,
     glare_strength: float = 3.0,
 ) -> tuple[Quad, ...]:
-    """The quads that draw ``target``: cube faces, or one plate per tag."""
+    """The quads that draw ``target``: cube faces, or one plate per tag (an AprilGrid's
+    plates reach half the gap beyond each tag, so they tile the board, and each carries a
+    quarter of the four black squares at its tag's corners)."""
     hidden = set(hidden_tags)
     quads = []
     for tag in target.tags:
         right, down = _tag_frame(tag)
         size = tag.size_m
-        cells = tag_bits(target.family, tag.tag_id).shape[0]
-        cell = size / cells
-        margin = (target.cube.side_m - size) / 2.0 if target.cube is not None else cell
+        bits = tag_bits(target.family, tag.tag_id, target.border_bits)
+        cell = size / bits.shape[0]
+        squares = 0.0
+        if target.cube is not None:
+            margin = (target.cube.side_m - size) / 2.0
+        elif target.grid is not None:
+            margin = squares = target.grid.gap_m / 2.0
+        else:
+            margin = cell
         origin = tag.corners[0] - margin * (right + down)
         if tag.tag_id in hidden:
             shader = PlainShader(PAPER_WHITE)
         else:
-            shader = TagShader(tag_bits(target.family, tag.tag_id), margin, margin, cell, PAPER_WHITE, INK_BLACK)
+            shader = TagShader(bits, margin, margin, cell, PAPER_WHITE, INK_BLACK, squares)
         quads.append(
             Quad(
                 origin,

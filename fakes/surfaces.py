@@ -67,6 +67,7 @@ class TagShader:
     cell_m: float
     paper: float = 0.9
     ink: float = 0.06
+    corner_squares_m: float = 0.0  # black squares this wide touching the tag's corners diagonally
 
     def _cells(self, u_m: np.ndarray, v_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = self.bits.shape[0]
@@ -74,16 +75,30 @@ class TagShader:
         row = np.floor((v_m - self.tag_v_m) / self.cell_m).astype(np.int32)
         return row, col, (col >= 0) & (col < n) & (row >= 0) & (row < n)
 
+    def _square(self, u_m: np.ndarray, v_m: np.ndarray) -> np.ndarray:
+        """Where a corner square is: 1-4 (TL, TR, BR, BL), else 0."""
+        if self.corner_squares_m <= 0:
+            return np.zeros(u_m.shape, np.int32)
+        side = self.bits.shape[0] * self.cell_m
+        du, dv = u_m - self.tag_u_m, v_m - self.tag_v_m
+        left, right = (du < 0) & (du >= -self.corner_squares_m), (du >= side) & (du < side + self.corner_squares_m)
+        top, bottom = (dv < 0) & (dv >= -self.corner_squares_m), (dv >= side) & (dv < side + self.corner_squares_m)
+        return (1 * (left & top) + 2 * (right & top) + 3 * (right & bottom) + 4 * (left & bottom)).astype(np.int32)
+
     def __call__(self, u_m: np.ndarray, v_m: np.ndarray) -> np.ndarray:
         row, col, inside = self._cells(u_m, v_m)
         white = np.ones(u_m.shape, np.float32)
         white[inside] = self.bits[row[inside], col[inside]]
+        white[self._square(u_m, v_m) > 0] = 0.0
         return np.float32(self.ink) + white * np.float32(self.paper - self.ink)
 
     def labels(self, u_m: np.ndarray, v_m: np.ndarray) -> np.ndarray:
-        """1 + the cell index inside the tag, 0 on the margin."""
+        """1 + the cell index inside the tag, a label of its own on each corner square, 0
+        on the margin."""
         row, col, inside = self._cells(u_m, v_m)
-        return np.where(inside, 1 + row * self.bits.shape[0] + col, 0).astype(np.int32)
+        n2 = self.bits.shape[0] ** 2
+        square = self._square(u_m, v_m)
+        return np.where(inside, 1 + row * self.bits.shape[0] + col, np.where(square > 0, n2 + square, 0)).astype(np.int32)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,4 +1,5 @@
-"""AprilTag detection: the AprilTag 3 C library through ``robotpy-apriltag``.
+"""AprilTag detection: the AprilTag 3 C library through ``robotpy-apriltag``; tags with a
+two-cell black border (a Kalibr AprilGrid) through OpenCV's ``ArucoDetector``.
 
 The binding was chosen by measurement (docs/detector_choice.md): of pupil-apriltags,
 pyapriltags, robotpy-apriltag and OpenCV's aruco module with the AprilTag dictionary, it
@@ -14,6 +15,13 @@ Two conventions are converted here, once, so nothing downstream knows about them
   (in the image of an upright tag: TR, TL, BL, BR). cubeloc uses TL, TR, BR, BL of the tag
   printed upright, the order of ``cv2.aruco`` for a ``generateImageMarker`` image.
 
+The AprilTag library expects a one-cell border with white around it. An AprilGrid's tags
+have a two-cell border and black squares touching their corners: the library decodes none
+of them, where ``cv2.aruco`` with ``markerBorderBits = 2`` decodes 35 of 36 (EuRoC) and 36
+of 36 (TUM-VI) on the real frames of ``../shared/data/aprilgrid-real``. Its corners lie
+0.5-1.5 px inside the tags' outer edges there; ``refine_corners(saddles=True)`` finds them
+where the tags meet the grid's gap squares (docs/planar.md).
+
 One ``TagDetector`` should live as long as the process: creating detectors is expensive,
 and one binding was seen to crash in the destructor of a detector collected while another
 one was alive (tests/test_detection.py exercises that lifecycle with this binding).
@@ -24,19 +32,35 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import distort, undistort
 from positioning.jit import compiled, read_only
 from positioning.step_profiles import step_positions
+from positioning.tag_bits import ARUCO_DICTIONARIES
 from positioning.target import KNOWN_FAMILIES
 
 # Library corner index for each of our TL, TR, BR, BL (see the module docstring).
 LIBRARY_TO_UPRIGHT = np.array([1, 0, 3, 2])
 LIBRARY_PIXEL_OFFSET = 0.5  # library pixel-centre convention minus OpenCV's
-# Cells across a tag, black border included (the tag size spans these).
+# OpenCV's decoder gives no confidence: its detections all count as this margin (the
+# library's own default floor is 10; its sure decodes reach 50-150).
+ARUCO_DECISION_MARGIN = 100.0
+# Saddle corners (``_saddle_corners``): the search window's half-width in cells (1-1.6
+# cells gave 0.25 px on the real EuRoC frame, 1 px 2.4 px, 2 cells 0.33 px), at most
+# this many pixels, and the iteration's stop.
+SADDLE_WINDOW_CELLS = 1.25
+MAX_SADDLE_WINDOW_PX = 12
+SADDLE_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 0.001)
+# Cells across a tag with a one-cell black border included (the tag size spans these).
 FAMILY_CELLS = {"tag36h11": 8, "tag36h10": 8, "tag25h9": 7, "tag16h5": 6}
+
+
+def cells_across(family: str, border_bits: int = 1) -> int:
+    """Cells across a tag of ``family`` with a black border of ``border_bits`` cells."""
+    return FAMILY_CELLS[family] + 2 * (border_bits - 1)
 
 
 @dataclass(frozen=True)
@@ -72,6 +96,17 @@ class DetectorOptions:
     threads: int = 1
 
 
+def library_decimate(factor: float) -> float:
+    """The largest decimation at most ``factor`` that the AprilTag library performs: 1.5 or
+    a whole number (any other factor is resampled as its whole part while the quads are
+    scaled back by the factor itself, and every tag is lost: 0 of 36 at 1.05 and 2.5)."""
+    if factor < 1.5:
+        return 1.0
+    if factor < 2.0:
+        return 1.5
+    return float(int(factor))
+
+
 class TagDetector:
     """A long-lived AprilTag detector for one family.
 
@@ -79,14 +114,26 @@ class TagDetector:
     (pixel bounds, clipped to the image); corners always come back in full-image pixels.
     """
 
-    def __init__(self, family: str = "tag36h11", options: DetectorOptions | None = None) -> None:
+    def __init__(self, family: str = "tag36h11", options: DetectorOptions | None = None,
+                 border_bits: int = 1) -> None:
         import robotpy_apriltag
 
         if family not in KNOWN_FAMILIES:
             raise ValueError(f"unrecognised tag family {family!r}; families I know: {', '.join(KNOWN_FAMILIES)}")
+        if border_bits not in (1, 2):
+            raise ValueError(f"border_bits must be 1 or 2, got {border_bits!r}")
         self.family = family
+        self.border_bits = border_bits
+        self.cells = cells_across(family, border_bits)
         self.options = options or DetectorOptions()
         o = self.options
+        self._aruco = None
+        if border_bits == 2:
+            parameters = cv2.aruco.DetectorParameters()
+            parameters.markerBorderBits = 2
+            parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE  # refine_corners fits the edges
+            dictionary = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARIES[family])
+            self._aruco = cv2.aruco.ArucoDetector(dictionary, parameters)
         detector = robotpy_apriltag.AprilTagDetector()
         if not detector.addFamily(family, o.max_hamming):
             raise ValueError(f"the AprilTag library does not know the family {family!r}")
@@ -125,6 +172,8 @@ class TagDetector:
             image = image[y0:y1, x0:x1]
         # The binding reads the buffer row by row: a crop must be made contiguous.
         image = np.ascontiguousarray(image)
+        if self._aruco is not None:
+            return self._detect_aruco(image, x0, y0)
         self._set_decimate(decimate if decimate is not None else self.options.quad_decimate)
         corner_buffer = [0.0] * 8
         found = []
@@ -138,7 +187,20 @@ class TagDetector:
         found.sort(key=lambda d: (d.tag_id, -d.decision_margin))
         return found
 
+    def _detect_aruco(self, image: np.ndarray, x0: int, y0: int) -> list[TagDetection]:
+        """Two-cell borders: OpenCV's decoder (no decimation; its corners come in cubeloc's
+        order and pixel convention). It reports no decision margin: each counts as
+        ``ARUCO_DECISION_MARGIN``."""
+        corners, ids, _ = self._aruco.detectMarkers(image)
+        if ids is None:
+            return []
+        found = [TagDetection(int(i), c.reshape(4, 2).astype(np.float64) + (x0, y0), ARUCO_DECISION_MARGIN, 0)
+                 for c, i in zip(corners, ids.ravel(), strict=True)]
+        found.sort(key=lambda d: d.tag_id)
+        return found
+
     def _set_decimate(self, decimate: float) -> None:
+        decimate = library_decimate(decimate)
         if decimate != self._decimate:
             config = self._detector.getConfig()
             config.quadDecimate = float(decimate)
@@ -292,7 +354,7 @@ def _corners_of(centre: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
 
 
 def refine_corners(image: np.ndarray, detection: TagDetection, calibration: CameraCalibration | None = None,
-                   cells: int = 8, passes: int = 1) -> TagDetection | None:
+                   cells: int = 8, passes: int = 1, saddles: bool = False) -> TagDetection | None:
     """The detection with corners from straight lines fitted to its four outer edges.
 
     With ``calibration`` the lines are fitted in undistorted
@@ -302,7 +364,12 @@ def refine_corners(image: np.ndarray, detection: TagDetection, calibration: Came
     small to gain from it, and None when its edges are not clean straight steps near the
     library's quad (occlusion, glare, or a quad the library fitted to the wrong edges
     while still decoding the id): such a detection should not be trusted.
+
+    ``saddles``: each corner is where the tag meets a black square diagonally (a Kalibr
+    AprilGrid), a saddle point that ``_saddle_corners`` finds instead.
     """
+    if saddles:
+        return _saddle_corners(image, detection, cells)
     corners = detection.corners.copy()
     for _ in range(passes):
         sides = corners[_NEXT] - corners
@@ -322,4 +389,22 @@ def refine_corners(image: np.ndarray, detection: TagDetection, calibration: Came
         if np.abs(new - detection.corners).max() > max(2.0, 0.05 * size):
             return None  # the edges are not where the library put them: a bad quad
         corners = new
+    return TagDetection(detection.tag_id, corners, detection.decision_margin, detection.hamming)
+
+
+def _saddle_corners(image: np.ndarray, detection: TagDetection, cells: int) -> TagDetection | None:
+    """Corners at the saddle points where the tag's black border meets a black square
+    diagonally (``cv2.cornerSubPix``, as Kalibr refines its AprilGrids), each searched
+    within ``SADDLE_WINDOW_CELLS`` cells of the detector's corner: inside the tag's two-cell
+    border and the square's three cells. On the real EuRoC frame the 35 tags' corners then
+    fit one pose of the grid at 0.25 px RMS, where OpenCV's own were 2.5 px (0.5-1.5 px
+    inside the tags, some a cell). None when a corner leaves its window (no saddle there)."""
+    sides = np.roll(detection.corners, -1, axis=0) - detection.corners
+    cell_px = float(np.mean(np.hypot(sides[:, 0], sides[:, 1]))) / cells
+    half = int(np.clip(round(SADDLE_WINDOW_CELLS * cell_px), 2, MAX_SADDLE_WINDOW_PX))
+    start = detection.corners.astype(np.float32).reshape(-1, 1, 2)
+    corners = cv2.cornerSubPix(image, start.copy(), (half, half), (-1, -1), SADDLE_CRITERIA).reshape(4, 2)
+    corners = corners.astype(np.float64)
+    if not np.all(np.isfinite(corners)) or np.hypot(*(corners - detection.corners).T).max() > half:
+        return None
     return TagDetection(detection.tag_id, corners, detection.decision_margin, detection.hamming)

@@ -69,7 +69,8 @@ _MODEL_CACHE_SIZE = 64
 def edge_model(target: Target, tag_ids: tuple[int, ...], samples_per_cell: int) -> EdgeModel:
     """Edge samples of the given tags, ``samples_per_cell`` along each cell length
     (cached: a target's tags do not move, and building the model costs milliseconds)."""
-    key = (target.family, samples_per_cell, tuple((i, target.tag(i).corners.tobytes()) for i in tag_ids))
+    key = (target.family, target.border_bits, samples_per_cell,
+           tuple((i, target.tag(i).corners.tobytes()) for i in tag_ids))
     model = _MODELS.get(key)
     if model is None:
         if len(_MODELS) >= _MODEL_CACHE_SIZE:
@@ -83,7 +84,7 @@ def _build_edge_model(target: Target, tag_ids: tuple[int, ...], samples_per_cell
     run_base = 0
     for index, tag_id in enumerate(tag_ids):
         tag = target.tag(tag_id)
-        edges = tag_edges(target.family, tag_id)
+        edges = tag_edges(target.family, tag_id, target.border_bits)
         n = edges.cells
         c = tag.corners
         right, down = (c[1] - c[0]) / n, (c[3] - c[0]) / n  # one cell, in metres
@@ -296,7 +297,8 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
         # A profile every PIXELS_PER_PROFILE pixels along the edges, within limits.
         tag = target.tag(kept[0])
         depth = float((rotation @ tag.center + translation)[2])
-        cell_px = calibration.camera_matrix[0, 0] * tag.size_m / tag_edges(target.family, kept[0]).cells / depth
+        cell_px = (calibration.camera_matrix[0, 0] * tag.size_m
+                   / tag_edges(target.family, kept[0], target.border_bits).cells / depth)
         samples_per_cell = int(np.clip(round(cell_px / PIXELS_PER_PROFILE), *SAMPLES_PER_CELL))
     model = edge_model(target, tuple(kept), samples_per_cell)
     # Coarse to fine: the iterations before the last measure half the profiles (half as

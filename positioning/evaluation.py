@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from positioning.geometry import Transform
 from positioning.trajectory_io import StampedPose
 
 DEFAULT_MAX_DT_NS = 1_000_000  # 1 ms: both files come from the same frame stamps
@@ -285,3 +286,31 @@ def score_estimates(truth: list[StampedPose], estimates: list) -> RunScore:
     pose), each stamped as its frame's ground truth."""
     return score_run(truth, [None if e is None else (StampedPose(t.stamp_ns, e.T_world_camera), e.covariance)
                              for e, t in zip(estimates, truth, strict=True)])
+
+
+def corners_sqpnp_pose(points_world: np.ndarray, pixels: np.ndarray, calibration) -> Transform | None:
+    """The corners-only baseline a pose is measured against: SQPnP, then OpenCV's
+    Levenberg-Marquardt, on all given corners (T_world_camera, or None)."""
+    import cv2
+
+    if len(points_world) < 4:
+        return None
+    ok, rvec, tvec = cv2.solvePnP(points_world, pixels, calibration.camera_matrix, calibration.distortion,
+                                  flags=cv2.SOLVEPNP_SQPNP)
+    if not ok:
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(points_world, pixels, calibration.camera_matrix, calibration.distortion,
+                                      rvec, tvec)
+    return Transform.from_rvec_tvec(rvec.ravel(), tvec.ravel()).inverse()
+
+
+def decoded_corners_pose(image: np.ndarray, target, calibration, detector) -> Transform | None:
+    """The corners-only baseline on an image: ``target``'s tags decoded by ``detector``
+    without decimation, then ``corners_sqpnp_pose`` on all their corners."""
+    from positioning.target_pose import unique_target_detections
+
+    found = unique_target_detections(detector.detect(image, None, 1.0), target)
+    if not found:
+        return None
+    return corners_sqpnp_pose(target.corners_of(tuple(d.tag_id for d in found)),
+                              np.concatenate([d.corners for d in found]), calibration)

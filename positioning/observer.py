@@ -6,8 +6,8 @@ are therefore the same edge-aligned poses with the same checks. Per image:
 
 * search: the tag regions predicted from a prior pose (decimated, fast; a tag missed there
   is searched again in a masked region, everything outside its predicted quiet zone
-  painted white); the full frame (decimate 3) when they give fewer tags than last time,
-  if the caller allows a full search; after a full-frame pose, the masked regions of tags
+  painted white); the full frame (decimate 3, then finer when it found small tags or
+  none) when they give fewer tags than last time, if the caller allows a full search; after a full-frame pose, the masked regions of tags
   the pose says are in view but were not found; when the full frame gives one face only,
   faces whose residuals disagree or a second face too oblique, the neighbourhood of each
   tag without decimation (recovery);
@@ -32,10 +32,9 @@ import structlog
 
 from calib.camera_info import CameraCalibration
 from positioning import jit
-from positioning.camera_model import project, project_pose
+from positioning.camera_model import project_pose
 from positioning.corner_pose import TargetPose, pose_covariance
 from positioning.detection import (
-    FAMILY_CELLS,
     DetectorOptions,
     TagDetection,
     TagDetector,
@@ -44,11 +43,25 @@ from positioning.detection import (
 from positioning.edge_alignment import SHARP_CORNER_RMS_PX, refine_pose_on_edges
 from positioning.geometry import Transform
 from positioning.tag_scale import check_tag_scale
+from positioning.tag_search import (
+    COMPLETION_GROWTH,
+    LARGE_TAG_DECIMATE,
+    LARGE_TAG_PX,
+    NEIGHBOURHOOD_TAG_SIZES,
+    REGION_GROWTH,
+    TagRegion,
+    decimate_for,
+    finest_empty_decimate,
+    grey_percentile,
+    predicted_tag_regions,
+)
 from positioning.target import Target
 from positioning.target_pose import (
     PoseOptions,
     Refusal,
+    count_planes,
     estimate_target_pose,
+    quad_width_px,
     single_plane_candidates,
     unique_target_detections,
 )
@@ -57,97 +70,6 @@ from positioning.target_pose import (
 SHARP_HISTORY_FRAMES = 100
 SHARP_MIN_FRAMES = 10
 log = structlog.get_logger()
-
-# A predicted tag region grows by this fraction of the tag's size on each side, plus a
-# fixed margin: the camera moves between frames and the prediction is last frame's pose.
-REGION_GROWTH = 0.35
-REGION_MARGIN_PX = 16
-# The completion search after a pose from this frame's own tags needs less room: no motion
-# since the pose, and everything outside the predicted quiet zone is painted white anyway.
-# The smaller crop is cheaper to search (2 m: 0.70 against 0.88 ms for the missing tag);
-# over the range map's 480 views no pose lost and two gained a third face (at 0.1 one
-# lost a face: the crop's own margin matters to the decimated search).
-COMPLETION_GROWTH = 0.2
-# Tags seen more obliquely than this are not predicted: the library decoded a tag at 85 deg
-# on the range map (bench range), none beyond.
-MAX_PREDICTED_ANGLE_DEG = 87.0
-
-
-# A predicted tag this large (pixels) is searched with more decimation: its quad is still
-# 30 px or more in the decimated image, and a third cheaper to find.
-LARGE_TAG_PX = 90.0
-LARGE_TAG_DECIMATE = 3.0
-
-# Recovery searches this many tag sizes around a lone tag for its neighbours.
-NEIGHBOURHOOD_TAG_SIZES = 1.2
-# A tag needs a white quiet zone one cell wide; the masked search keeps this much of it.
-QUIET_ZONE_KEPT_CELLS = 0.8
-
-
-def _grey_percentile(values: np.ndarray, q: float) -> float:
-    """``np.percentile(values, q)`` (linear interpolation) of uint8 grey levels, from their
-    histogram: the same value in 44 against 200 us for the 40,000 pixels of a tag region."""
-    counts = np.cumsum(np.bincount(values, minlength=256))
-    position = q / 100.0 * (len(values) - 1)
-    low = int(position)
-    below = int(np.searchsorted(counts, low, side="right"))
-    above = int(np.searchsorted(counts, min(low + 1, len(values) - 1), side="right"))
-    return below + (position - low) * (above - below)
-
-
-@dataclass(frozen=True)
-class TagRegion:
-    tag_id: int
-    roi: tuple[int, int, int, int]  # x0, y0, x1, y1 pixels
-    quiet_zone: np.ndarray  # (4, 2) pixels: the tag and most of its white margin, predicted
-    size_px: float = 0.0  # the tag's predicted size (longest side of its pixel box)
-
-
-def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
-                          growth: float = REGION_GROWTH, margin_px: int = REGION_MARGIN_PX) -> list[TagRegion]:
-    """Where each tag facing the camera at ``T_world_camera`` should appear, one pixel box
-    per tag, enlarged for motion; tags behind the camera or out of the image are left out."""
-    T_camera_world = T_world_camera.inverse()
-    cos_limit = np.cos(np.radians(MAX_PREDICTED_ANGLE_DEG))
-    # Far outside the field of view the distortion polynomial folds points back into the
-    # image (measured: a cube 60+ degrees off-axis gave a whole-image box, 18 ms of search
-    # per frame for nothing). Keep to a field of view half as wide again as the image's.
-    k = calibration.camera_matrix
-    low_n = -k[:2, 2] / np.diag(k)[:2]
-    high_n = (np.array([calibration.width, calibration.height]) - 1 - k[:2, 2]) / np.diag(k)[:2]
-    spread = 0.25 * (high_n - low_n)
-    tags = target.tags
-    centres = np.array([tag.center for tag in tags])
-    normals = np.array([tag.normal for tag in tags])
-    to_camera = T_world_camera.translation - centres
-    # not seen edge-on or from behind, in front of the camera, and near the field of view
-    keep = np.einsum("ij,ij->i", normals, to_camera) > cos_limit * np.linalg.norm(to_camera, axis=1)
-    in_camera = T_camera_world.apply(np.concatenate([tag.corners for tag in tags])).reshape(len(tags), 4, 3)
-    keep &= np.all(in_camera[:, :, 2] > 0.05, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xn = in_camera[:, :, :2] / in_camera[:, :, 2:]
-    keep &= np.all((xn >= low_n - spread) & (xn <= high_n + spread), axis=(1, 2))
-    chosen = np.flatnonzero(keep)
-    if len(chosen) == 0:
-        return []
-    grow = 1.0 + 2.0 * QUIET_ZONE_KEPT_CELLS / FAMILY_CELLS[target.family]
-    corners = in_camera[chosen]
-    centre = corners.mean(axis=1, keepdims=True)
-    outline = np.concatenate([corners, centre + grow * (corners - centre)], axis=1)  # (K, 8, 3)
-    pixels = project(outline.reshape(-1, 3), calibration).reshape(len(chosen), 8, 2)
-    regions = []
-    for index, outline_px in zip(chosen, pixels, strict=True):
-        quad, quiet_zone = outline_px[:4], outline_px[4:]
-        low, high = quad.min(axis=0), quad.max(axis=0)
-        pad = (high - low).max() * growth + margin_px
-        x0, y0 = np.floor(low - pad).astype(int)
-        x1, y1 = np.ceil(high + pad).astype(int) + 1
-        x0, y0 = max(int(x0), 0), max(int(y0), 0)
-        x1, y1 = min(int(x1), calibration.width), min(int(y1), calibration.height)
-        if x1 - x0 >= 16 and y1 - y0 >= 16:
-            regions.append(TagRegion(tags[index].tag_id, (x0, y0, x1, y1), quiet_zone, float((high - low).max())))
-    return regions
-
 
 @dataclass(frozen=True)
 class Observation:
@@ -186,21 +108,24 @@ class TargetObserver:
     ``observe(image, prior, seq, full_search)``: ``prior`` (T_world_camera) predicts the tag
     regions and resolves a single face; ``full_search`` False keeps to the predicted
     regions (the tracker, while the target should be out of view, searches the full frame
-    only every few frames). State kept between calls: how many tags the last pose used,
-    which tags needed the masked search, whether the tag size was checked, and what the
-    library's corners disagree with an aligned pose by on this camera's sharp images.
+    only every few frames). ``fine_search`` False leaves out the finer full-frame passes
+    after small tags or none (the tracker's: see ``TrackingProcessor``). State kept between
+    calls: how many tags the last pose used, which tags needed the masked search, whether
+    the tag size was checked, and what the library's corners disagree with an aligned pose
+    by on this camera's sharp images.
     """
 
     def __init__(self, target: Target, calibration: CameraCalibration, options: PoseOptions | None = None,
                  detector_options: DetectorOptions | None = None, edge_refinement: bool = True,
-                 full_frame_decimate: float = 3.0, edge_alignment: bool = True) -> None:
+                 full_frame_decimate: float = 3.0, edge_alignment: bool = True, fine_search: bool = True) -> None:
         self.target = target
         self.calibration = calibration
         self.options = options or PoseOptions()
-        self._detector = TagDetector(target.family, detector_options)
+        self._detector = TagDetector(target.family, detector_options, target.border_bits)
         self.edge_refinement = edge_refinement
         self.edge_alignment = edge_alignment  # align the pose to every cell edge (edge_alignment.py)
         self.full_frame_decimate = full_frame_decimate
+        self.fine_search = fine_search  # finer full-frame passes after small or no tags (``_search``)
         self._prior: Transform | None = None
         self._last_tag_count = 0
         self._scale_checked = False
@@ -248,7 +173,7 @@ class TargetObserver:
             cv2.fillConvexPoly(inside, np.round(region.quiet_zone - (x0, y0)).astype(np.int32), 1)
             if not inside.any():
                 continue
-            white = _grey_percentile(crop[inside == 1], 90.0)
+            white = grey_percentile(crop[inside == 1], 90.0)
             crop[inside == 0] = np.uint8(white)
             # Decimated first (4x cheaper); without decimation only if that finds nothing.
             detections = [d for d in self._detector.detect(crop) if d.tag_id == region.tag_id]
@@ -278,13 +203,28 @@ class TargetObserver:
             self.last_search = "predicted" if found else ""
             return found
         self.last_search = "full"
-        # Coarse first (decimate 3: a third of the cost of the paper's 2); the tags it
-        # misses next to found ones are recovered by the completion search, and only an
-        # empty result pays for the finer pass.
-        found = self._ours(self._detector.detect(image, None, self.full_frame_decimate))
-        if not found and self.full_frame_decimate > self._detector.options.quad_decimate:
-            found = self._ours(self._detector.detect(image))
-        return found
+        # Coarse first (decimate 3: a third of the cost of the paper's 2). An empty result
+        # pays for one finer pass, as fine as the library's decimation costs on the paper's
+        # frame (``finest_empty_decimate``); small tags found (the target far, or a
+        # low-resolution camera) for a finer pass that finds their like (decimate_for).
+        # Tags missed next to found ones are recovered by the completion search.
+        decimate = self.full_frame_decimate
+        found = self._ours(self._detector.detect(image, None, decimate))
+        if not self.fine_search:  # the library's own decimation, and only after nothing
+            if not found and decimate > self._detector.options.quad_decimate:
+                found = self._ours(self._detector.detect(image))
+            return found
+        while True:
+            if found:
+                finer = decimate_for(min(quad_width_px(d.corners) for d in found), decimate)
+            else:
+                finer = min(decimate, finest_empty_decimate(image.shape, self._detector.options.quad_decimate))
+            if finer >= decimate:
+                return found
+            decimate = finer
+            more = self._ours(self._detector.detect(image, None, decimate))
+            have = {d.tag_id for d in more}
+            found = more + [d for d in found if d.tag_id not in have]
 
     def _complete(self, image: np.ndarray, detections: list[TagDetection], pose: Transform,
                   growth: float = REGION_GROWTH) -> list[TagDetection]:
@@ -304,28 +244,40 @@ class TargetObserver:
     def _recover(self, image: np.ndarray, detections: list[TagDetection]):
         """One face found, or faces that disagree (a bad quad with a valid id). From each
         tag alone: first the neighbourhood of the tag without decimation (the other faces
-        of a cube are within one tag size of it), then the regions its two possible poses
-        predict (masked); tags found there settle the pose, if any is right."""
+        of a cube are within one tag size of it, and so are a board's neighbouring tags),
+        then the regions its two possible poses predict (masked). What they find joins
+        every tag found so far, and that whole set is posed; the seed and its finds alone
+        only when they span more planes than the whole (another face of a cube beside a
+        bad quad), so a pose never rests on fewer tags of the same plane than were found."""
+        known = {d.tag_id: d for d in detections}
+        planes = count_planes(self.target, list(known))
         for seed in sorted(detections, key=lambda d: -d.decision_margin):
             low, high = seed.corners.min(axis=0), seed.corners.max(axis=0)
             reach = float((high - low).max()) * NEIGHBOURHOOD_TAG_SIZES
             x0, y0 = np.floor(low - reach).astype(int)
             x1, y1 = np.ceil(high + reach).astype(int)
             near = [d for d in self._ours(self._detector.detect(image, (x0, y0, x1, y1), 1.0))
-                    if d.tag_id != seed.tag_id]
+                    if d.tag_id not in known]
             # searched in this order, each only if the ones before gave no pose
             attempts = itertools.chain(
                 [self._refine(image, near)] if near else [],
-                (self._complete(image, [seed], candidate)
+                (self._complete(image, list(known.values()), candidate)
                  for candidate in single_plane_candidates([seed], self.target, self.calibration)))
             for extra in attempts:
+                extra = [d for d in extra if d.tag_id not in known]
                 if not extra:
                     continue
-                outcome = estimate_target_pose([seed, *extra], self.target, self.calibration, self.options,
-                                               self._prior, with_covariance=False)
-                if outcome.pose is not None:
-                    self.last_search = "full+recovery"
-                    return outcome, [seed, *extra]
+                known.update((d.tag_id, d) for d in extra)
+                tries = [list(known.values())]
+                if count_planes(self.target, [seed.tag_id, *(d.tag_id for d in extra)]) > planes:
+                    tries.append([seed, *extra])
+                for tags in tries:
+                    outcome = estimate_target_pose(tags, self.target, self.calibration, self.options,
+                                                   self._prior, with_covariance=False)
+                    if outcome.pose is not None:
+                        self.last_search = "full+recovery"
+                        return outcome, tags
+                planes = count_planes(self.target, list(known))
         return None
 
     def _refine(self, image: np.ndarray, detections: list[TagDetection]) -> list[TagDetection]:
@@ -335,10 +287,10 @@ class TargetObserver:
         its id kept in ``self._suspects`` so that it is searched for again."""
         if not self.edge_refinement:
             return detections
-        cells = FAMILY_CELLS[self.target.family]
+        cells = self._detector.cells
         refined = []
         for detection in detections:
-            better = refine_corners(image, detection, self.calibration, cells)
+            better = refine_corners(image, detection, self.calibration, cells, saddles=self.target.grid is not None)
             if better is None:
                 self._suspects.add(detection.tag_id)
             else:

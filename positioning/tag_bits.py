@@ -1,7 +1,7 @@
 """The known edges inside a tag: every boundary between a black and a white cell.
 
 A tag36h11 tag is an 8 x 8 grid of cells (a one-cell black border around 6 x 6 code bits)
-on a white margin. Its 3-D corners fix every cell corner, so each boundary between cells
+on a white margin; with a two-cell border (a Kalibr AprilGrid) 10 x 10. Its 3-D corners fix every cell corner, so each boundary between cells
 of different colour is a straight 3-D segment known as well as the corners are: tens of
 extra edges per tag where the corners-only baseline uses four. The bit pattern is the
 family's code, as OpenCV's ``aruco`` module generates it (the same drawing the printable
@@ -29,11 +29,12 @@ ARUCO_DICTIONARIES = {
 
 
 @functools.lru_cache(maxsize=128)
-def tag_cells(family: str, tag_id: int) -> np.ndarray:
-    """(N, N) uint8 cells of a tag including its black border: 1 white, 0 black."""
+def tag_cells(family: str, tag_id: int, border_bits: int = 1) -> np.ndarray:
+    """(N, N) uint8 cells of a tag including its black border of ``border_bits`` cells:
+    1 white, 0 black."""
     dictionary = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARIES[family])
-    cells = dictionary.markerSize + 2
-    image = cv2.aruco.generateImageMarker(dictionary, tag_id, cells, borderBits=1)
+    cells = dictionary.markerSize + 2 * border_bits
+    image = cv2.aruco.generateImageMarker(dictionary, tag_id, cells, borderBits=border_bits)
     bits = (image > 127).astype(np.uint8)
     bits.setflags(write=False)
     return bits
@@ -57,8 +58,8 @@ class TagEdges:
 
 
 @functools.lru_cache(maxsize=128)
-def tag_edges(family: str, tag_id: int) -> TagEdges:
-    bits = tag_cells(family, tag_id)
+def tag_edges(family: str, tag_id: int, border_bits: int = 1) -> TagEdges:
+    bits = tag_cells(family, tag_id, border_bits)
     n = bits.shape[0]
     padded = np.ones((n + 2, n + 2), np.uint8)  # the white margin all round
     padded[1:-1, 1:-1] = bits

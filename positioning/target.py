@@ -19,12 +19,28 @@ cube stands on its ``-z`` face), and ``ids`` are the tags on the faces
 left to right seen from outside, the top face sits above ``+x`` (its "up" is world -x) and
 the bottom face below ``+x`` (its "up" is world +x).
 
+or the Kalibr AprilGrid shorthand, Kalibr's own target file read as it is::
+
+    target_type: 'aprilgrid'
+    tagCols: 6
+    tagRows: 6
+    tagSize: 0.088      # metres, the outer black edge of a tag
+    tagSpacing: 0.3     # the gap between two tags, as a fraction of tagSize
+
+An AprilGrid has Kalibr's layout and origin: tag ``r * tagCols + c`` at row ``r`` (up the
+board, +y) and column ``c`` (+x), the origin at the outer corner of tag 0's black border,
+z out of the printed side; its tags are printed upside down in that frame (Kalibr's
+generator turns them 180 degrees) and have a two-cell black border, and a black square
+of the gap's size touches each tag's four corners. ``border_bits: 2`` states that border
+in the other forms (any family, any layout); the default is the usual one cell.
+
 Tag corners are TL, TR, BR, BL of the tag printed upright, on the outer edge of its black
 border (interfaces.md); tag size is that outer black edge length.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import os
@@ -91,13 +107,36 @@ class CubeSpec:
 
 
 @dataclass(frozen=True)
+class GridSpec:
+    """A Kalibr AprilGrid's parameters (the gap squares are drawn from them)."""
+
+    rows: int
+    cols: int
+    tag_size_m: float
+    spacing: float  # the gap as a fraction of the tag size
+
+    @property
+    def gap_m(self) -> float:
+        return self.spacing * self.tag_size_m
+
+    def to_kalibr_yaml(self) -> str:
+        return (f"target_type: 'aprilgrid'\ntagCols: {self.cols}\ntagRows: {self.rows}\n"
+                f"tagSize: {self.tag_size_m:g}\ntagSpacing: {self.spacing:g}\n")
+
+
+@dataclass(frozen=True)
 class Target:
-    """A validated target. ``tags`` are in file order; look up by id with ``tag(id)``."""
+    """A validated target. ``tags`` are in file order; look up by id with ``tag(id)``.
+
+    ``border_bits``: cells of black border around each tag's code (1, or 2 for a Kalibr
+    AprilGrid); ``grid``: the AprilGrid the tags were made from, if any."""
 
     family: str
     tags: tuple[Tag, ...]
     cube: CubeSpec | None = None
     source: str = ""  # the file it came from, for messages
+    border_bits: int = 1
+    grid: GridSpec | None = None
 
     @property
     def ids(self) -> tuple[int, ...]:
@@ -118,8 +157,10 @@ class Target:
 
     def to_yaml(self) -> str:
         """The explicit-tags form (always loadable, whatever the target was made from)."""
-        doc = {
-            "family": self.family,
+        doc: dict[str, Any] = {"family": self.family}
+        if self.border_bits != 1:
+            doc["border_bits"] = self.border_bits
+        doc |= {
             "tags": [
                 {"id": t.tag_id, "corners": [[round(float(v), 9) for v in c] for c in t.corners]}
                 for t in self.tags
@@ -186,6 +227,53 @@ def make_board(rows: int = 6, cols: int = 6, tag_size_m: float = 0.088, gap_m: f
     return target
 
 
+def make_aprilgrid(rows: int = 6, cols: int = 6, tag_size_m: float = 0.088, spacing: float = 0.3,
+                   family: str = "tag36h11") -> Target:
+    """A Kalibr AprilGrid (see the module docstring for the layout): ``rows`` x ``cols`` tags
+    of ``tag_size_m`` with ``spacing * tag_size_m`` between them, ids from 0 row by row."""
+    if not (isinstance(rows, int) and isinstance(cols, int)) or rows < 1 or cols < 1 or rows * cols > 10000:
+        raise InputFileError(f"an AprilGrid needs 1-10000 tags in tagRows x tagCols, got {rows!r} x {cols!r}")
+    if not 0 < spacing <= 2:
+        raise InputFileError(f"tagSpacing {spacing!r} must be a fraction of tagSize in (0, 2]")
+    pitch = tag_size_m * (1.0 + spacing)
+    tags = []
+    for row in range(rows):
+        for col in range(cols):
+            x0, y0 = col * pitch, row * pitch
+            # TL, TR, BR, BL of the tag as printed: turned 180 degrees in the board's frame
+            corners = np.array([[x0 + tag_size_m, y0, 0.0], [x0, y0, 0.0], [x0, y0 + tag_size_m, 0.0],
+                                [x0 + tag_size_m, y0 + tag_size_m, 0.0]])
+            tags.append(Tag(row * cols + col, corners))
+    target = Target(family, tuple(tags), border_bits=2, grid=GridSpec(rows, cols, tag_size_m, spacing))
+    validate_target(target, "aprilgrid")
+    return target
+
+
+def _parse_kalibr(doc: dict, where: str) -> Target:
+    """A Kalibr target file (``target_type: 'aprilgrid'``) as a Target."""
+    kind = doc.get("target_type")
+    if kind != "aprilgrid":
+        raise InputFileError(f"{where}: a Kalibr target of type {kind!r} has no tags; cubeloc reads 'aprilgrid' "
+                             "(a checkerboard serves calibration: cubeloc calibrate --board)")
+    keys = {"tagCols", "tagRows", "tagSize", "tagSpacing"}
+    missing = keys - set(doc)
+    if missing:
+        raise InputFileError(f"{where}: the aprilgrid is missing {sorted(missing)}")
+    unknown = set(doc) - keys - {"target_type"}
+    if unknown:
+        raise InputFileError(f"{where}: unknown key(s) {sorted(unknown)}; an aprilgrid has {sorted(keys)}")
+    for name in ("tagCols", "tagRows"):
+        if isinstance(doc[name], bool) or not isinstance(doc[name], int):
+            raise InputFileError(f"{where}: {name} must be a whole number, got {doc[name]!r}")
+    try:
+        target = make_aprilgrid(doc["tagRows"], doc["tagCols"], _number(doc["tagSize"], "tagSize", where),
+                                _number(doc["tagSpacing"], "tagSpacing", where))
+    except InputFileError as exc:
+        message = str(exc)
+        raise InputFileError(message if message.startswith(where) else f"{where}: {message}") from None
+    return dataclasses.replace(target, source=where)
+
+
 def validate_target(target: Target, where: str) -> None:
     """Raise InputFileError naming ``where`` and the first problem found."""
     if target.family not in KNOWN_FAMILIES:
@@ -194,6 +282,8 @@ def validate_target(target: Target, where: str) -> None:
         )
     if not target.tags:
         raise InputFileError(f"{where}: the target has no tags")
+    if target.border_bits not in (1, 2):
+        raise InputFileError(f"{where}: border_bits must be 1 or 2 (cells of black border), got {target.border_bits!r}")
     seen: set[int] = set()
     for tag in target.tags:
         if tag.tag_id in seen:
@@ -250,9 +340,14 @@ def parse_target(doc: Any, where: str) -> Target:
     """Build a Target from a parsed YAML document."""
     if not isinstance(doc, dict):
         raise InputFileError(f"{where}: expected a mapping with 'family' and 'tags' or 'cube'")
-    unknown = set(doc) - {"family", "tags", "cube"}
+    if "target_type" in doc:
+        return _parse_kalibr(doc, where)
+    unknown = set(doc) - {"family", "tags", "cube", "border_bits"}
     if unknown:
-        raise InputFileError(f"{where}: unknown key(s) {sorted(unknown)}; expected family, tags or cube")
+        raise InputFileError(f"{where}: unknown key(s) {sorted(unknown)}; expected family, border_bits, tags or cube")
+    border_bits = doc.get("border_bits", 1)
+    if isinstance(border_bits, bool) or border_bits not in (1, 2):
+        raise InputFileError(f"{where}: border_bits must be 1 or 2 (cells of black border), got {border_bits!r}")
     family = doc.get("family", "tag36h11")
     if not isinstance(family, str):
         raise InputFileError(f"{where}: family must be a string such as 'tag36h11'")
@@ -281,7 +376,7 @@ def parse_target(doc: Any, where: str) -> Target:
         except InputFileError as exc:
             message = str(exc)
             raise InputFileError(message if message.startswith(where) else f"{where}: {message}") from None
-        return Target(target.family, target.tags, target.cube, where)
+        return Target(target.family, target.tags, target.cube, where, border_bits)
     raw_tags = doc["tags"]
     if not isinstance(raw_tags, list) or not raw_tags:
         raise InputFileError(f"{where}: tags must be a non-empty list")
@@ -305,7 +400,7 @@ def parse_target(doc: Any, where: str) -> Target:
                 raise InputFileError(f"{where}: tag {tag_id}: each corner must be [x, y, z]")
             points.append([_number(v, f"tag {tag_id} corner", where) for v in corner])
         tags.append(Tag(tag_id, np.array(points)))
-    target = Target(family, tuple(tags), None, where)
+    target = Target(family, tuple(tags), None, where, border_bits)
     validate_target(target, where)
     return target
 
@@ -336,9 +431,10 @@ def combine_targets(primary: Target, others: list[tuple[Target, np.ndarray]]) ->
     id or the families differ."""
     tags, owner = list(primary.tags), {t.tag_id: primary.source for t in primary.tags}
     for target, T in others:
-        if target.family != primary.family:
-            raise InputFileError(f"{target.source}: its family {target.family} is not {primary.family} of "
-                                 f"{primary.source}: several targets must share one tag family")
+        if (target.family, target.border_bits) != (primary.family, primary.border_bits):
+            raise InputFileError(f"{target.source}: its tags ({target.family}, border {target.border_bits}) are not "
+                                 f"those of {primary.source} ({primary.family}, border {primary.border_bits}): "
+                                 "several targets must share one tag family and border")
         clash = sorted(t.tag_id for t in target.tags if t.tag_id in owner)
         if clash:
             raise InputFileError(f"{target.source}: tag id(s) {clash} also in {owner[clash[0]]}: every tag of "
@@ -349,7 +445,8 @@ def combine_targets(primary: Target, others: list[tuple[Target, np.ndarray]]) ->
             owner[tag.tag_id] = target.source
     if not others:
         return primary
-    return Target(primary.family, tuple(tags), None, " + ".join([primary.source, *(t.source for t, _ in others)]))
+    return Target(primary.family, tuple(tags), None, " + ".join([primary.source, *(t.source for t, _ in others)]),
+                  primary.border_bits)
 
 
 def default_cube_yaml() -> str:

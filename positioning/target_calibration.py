@@ -30,7 +30,7 @@ from scipy.sparse import lil_matrix
 from calib.camera_info import CameraCalibration
 from cubeloc.errors import InputFileError
 from positioning.camera_model import project_pose
-from positioning.detection import FAMILY_CELLS, TagDetection, TagDetector, refine_corners
+from positioning.detection import TagDetection, TagDetector, refine_corners
 from positioning.target import Tag, Target, validate_target
 from positioning.target_pose import PoseOptions, estimate_target_pose, unique_target_detections
 
@@ -106,14 +106,14 @@ def observe(images: Iterable[tuple[str, np.ndarray]], target: Target, calibratio
             detector: TagDetector | None = None) -> tuple[list[ViewObservation], list[tuple[str, str]]]:
     """Refined tag corners of each image; images with fewer than two of the target's
     tags are skipped (with the reason)."""
-    detector = detector or TagDetector(target.family)
-    cells = FAMILY_CELLS[target.family]
+    detector = detector or TagDetector(target.family, border_bits=target.border_bits)
+    cells = detector.cells
     views, skipped = [], []
     for name, image in images:
         found = unique_target_detections(detector.detect(image), target)
         refined = []
         for detection in found:
-            better = refine_corners(image, detection, calibration, cells)
+            better = refine_corners(image, detection, calibration, cells, saddles=target.grid is not None)
             if better is not None:
                 refined.append(better)
         if len(refined) < 2:

@@ -36,12 +36,15 @@ from positioning.target import Target
 
 # Tags whose normals are closer than this lie on one plane (a face) for counting planes.
 SAME_PLANE_DEG = 10.0
-# One plane: IPPE's two solutions refined to within this of each other are one pose; a
-# second solution must fit worse than the first by a margin over this corner noise.
-SAME_PLANE_POSE_M = 0.001
-SAME_PLANE_POSE_DEG = 0.2
+# One plane: the corner noise is never taken below this (refined corners on sharp renders
+# are 0.02-0.05 px off; a floor keeps a perfect fit from claiming certainty).
 PLANE_NOISE_FLOOR_PX = 0.1
-SAME_PLANE_MAX_SIGMA_FRACTION = 0.001
+# One plane: IPPE's two solutions, each refined, are one pose when the second lies within
+# the first's 99.73 % ellipsoid (chi-square, 6 degrees of freedom); else the first is
+# chosen when the second fits worse by this much chi-square (a likelihood ratio of
+# e^12.5), and the plane is ambiguous when it does not.
+PLANE_SAME_POSE_CHI2 = 20.06
+PLANE_SEPARATION_CHI2 = 25.0
 
 
 @dataclass(frozen=True)
@@ -62,10 +65,6 @@ class PoseOptions:
     max_tag_angle_deg: float = 70.0
     min_oblique_edge_px: float = 40.0
     max_position_sigma_m: float = 0.01
-    # One plane of two tags or more without a previous pose: accepted when IPPE's second
-    # solution fits this many times worse (RMS) than the first, and the pose's position
-    # sigma is within ``max_position_sigma_m``; a wide board separates them.
-    min_plane_separation: float = 3.0
 
 
 class Refusal(str, enum.Enum):
@@ -148,36 +147,35 @@ def plane_solutions(points_world: np.ndarray, pixels: np.ndarray,
     return sorted(out, key=lambda s: s[0])
 
 
-def _separated_plane(points_world: np.ndarray, pixels: np.ndarray, calibration: CameraCalibration,
-                     options: PoseOptions) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pose of one plane when it is not ambiguous, else None: its two IPPE solutions
-    either refine to the same pose (a frontal view: within ``SAME_PLANE_POSE_M`` and
-    ``SAME_PLANE_POSE_DEG``, and then only with a position sigma within
-    ``SAME_PLANE_MAX_SIGMA_FRACTION`` of the distance) or are told apart by their
-    residuals, the second's RMS ``min_plane_separation`` times the first's (or of
-    ``PLANE_NOISE_FLOOR_PX``); and the covariance puts the camera within
-    ``max_position_sigma_m``."""
+def _separated_plane(points_world: np.ndarray, pixels: np.ndarray,
+                     calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pose of one plane when it is not ambiguous, else None.
+
+    IPPE gives two poses of a plane, each refined by LM. They are one pose when the second
+    lies within the first's uncertainty (``PLANE_SAME_POSE_CHI2``: most views of a board,
+    where both fall into one minimum). Two distinct minima are told apart by their fit:
+    the second's sum of squared residuals exceeds the first's by ``PLANE_SEPARATION_CHI2``
+    times the corner noise squared (the first's residuals per degree of freedom, at least
+    ``PLANE_NOISE_FLOOR_PX``). The decision rests on the noise and the covariance, so it
+    holds at any distance, resolution and board size."""
     solutions = plane_solutions(points_world, pixels, calibration)
     if not solutions:
         return None
     rms, rvec, tvec = solutions[0]
-    same = False
-    if len(solutions) > 1:
-        other_rms, other_rvec, other_tvec = solutions[1]
-        a = Transform.from_rvec_tvec(rvec, tvec).inverse()
-        b = Transform.from_rvec_tvec(other_rvec, other_tvec).inverse()
-        same = (float(np.linalg.norm(a.translation - b.translation)) <= SAME_PLANE_POSE_M
-                and np.degrees(a.rotation_angle_to(b)) <= SAME_PLANE_POSE_DEG)
-        if not same and other_rms < options.min_plane_separation * max(rms, PLANE_NOISE_FLOOR_PX):
-            return None
+    if len(solutions) == 1:
+        return rvec, tvec
+    other_rms, other_rvec, other_tvec = solutions[1]
     residuals = pixels - project_pose(points_world, rvec, tvec, calibration)
     covariance = corners_covariance(points_world, rvec, tvec, residuals, calibration)
-    sigma = float(np.sqrt(max(np.linalg.eigvalsh(covariance[:3, :3]).max(), 0.0)))
-    # Where the two solutions meet (a frontal view) the valley between them is flat and
-    # the covariance too small: measured on a single cube face at 2 m, 11-17 mm off with
-    # sigma 4 mm (0.2 % of the distance); within 0.1 % the errors stayed under 2 mm.
-    distance = float(np.linalg.norm(tvec))
-    if sigma > options.max_position_sigma_m or (same and sigma > SAME_PLANE_MAX_SIGMA_FRACTION * distance):
+    first = Transform.from_rvec_tvec(rvec, tvec).inverse()
+    second = Transform.from_rvec_tvec(other_rvec, other_tvec).inverse()
+    turn, _ = cv2.Rodrigues(second.rotation @ first.rotation.T)  # world frame, as the covariance
+    difference = np.concatenate([second.translation - first.translation, turn.reshape(3)])
+    if float(difference @ np.linalg.pinv(covariance) @ difference) <= PLANE_SAME_POSE_CHI2:
+        return rvec, tvec
+    count = len(pixels)
+    noise2 = max(rms**2 * count / max(2 * count - 6, 1), PLANE_NOISE_FLOOR_PX**2)
+    if (other_rms**2 - rms**2) * count / noise2 < PLANE_SEPARATION_CHI2:
         return None
     return rvec, tvec
 
@@ -382,7 +380,7 @@ def _solve(ours: list[TagDetection], target: Target, calibration: CameraCalibrat
         # residuals, too few to show a biased edge (measured: a face whose quiet zone met a
         # white background, 1.2 px off on one edge, gave a "separated" pose 20 mm off with
         # sigma 2 mm). Several tags on the plane (a board) are checked by each other.
-        separated = _separated_plane(points_world, pixels, calibration, options) if len(ours) >= 2 else None
+        separated = _separated_plane(points_world, pixels, calibration) if len(ours) >= 2 else None
         if separated is not None:
             rvec, tvec = separated
         elif not options.allow_one_face:

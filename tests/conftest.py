@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -11,6 +12,29 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+
+
+def real_photographs(name: str) -> Path:
+    """``../shared/data/NAME``, the real photographs beside the repository. Missing: under
+    CI (``CI`` set) the test fails, so that a green run always includes them; elsewhere it
+    is skipped with the reason, and the session's summary says so in capitals."""
+    path = SHARED / "data" / name
+    if not path.is_dir():
+        message = f"REAL PHOTOGRAPHS NOT FOUND: {path} (the tests read ../shared beside the repository)"
+        if os.environ.get("CI"):
+            pytest.fail(message, pytrace=False)
+        MISSING_PHOTOGRAPHS.add(str(path))
+        pytest.skip(message)
+    return path
+
+
+MISSING_PHOTOGRAPHS: set[str] = set()
+
+
+def pytest_terminal_summary(terminalreporter):
+    for path in sorted(MISSING_PHOTOGRAPHS):
+        terminalreporter.write_line(f"WARNING: tests on real photographs were SKIPPED: {path} not found", red=True,
+                                    bold=True)
 
 
 def run_cli(*args: str, timeout: float = 120, **kwargs) -> subprocess.CompletedProcess:

@@ -11,11 +11,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import real_photographs
 
 from positioning.detection import LIBRARY_TO_UPRIGHT, DetectorOptions, TagDetector
 
 REPO = Path(__file__).resolve().parents[1]
-REAL = REPO.parent / "shared" / "data" / "apriltag-real"
 
 
 def reference_detections(path):
@@ -27,13 +27,12 @@ def reference_detections(path):
     return rows
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="shared real photographs not present")
 def test_real_photos_match_the_reference_corners_after_the_convention_change():
     # The reference was made with quad_decimate 1 and no edge refinement.
     detector = TagDetector("tag36h11", DetectorOptions(quad_decimate=1.0, refine_edges=False, max_hamming=2,
                                                        min_decision_margin=0.0))
     matched = total = 0
-    for photo in sorted(REAL.glob("*.jpg")):
+    for photo in sorted(real_photographs("apriltag-real").glob("*.jpg")):
         image = cv2.imread(str(photo), cv2.IMREAD_GRAYSCALE)
         found = detector.detect(image)
         for tag_id, library_corners in reference_detections(photo.with_suffix(".txt")):

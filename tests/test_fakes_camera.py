@@ -10,7 +10,7 @@ import pytest
 from calib.camera_info import paper_camera, read_camera_info
 from daemon.cameras import make_camera
 from drivers.base import Camera, CameraNotFound, CameraSettings, EndOfStream, FeatureNotSupported
-from drivers.sequence import read_mono_png, read_sequence_index
+from drivers.sequence import read_image, read_sequence_index
 from fakes import TRAJECTORIES, SyntheticCamera, default_room, make_trajectory
 from fakes.scenarios import TIMING as SCENARIO_TIMING
 from fakes.trajectories import DEFAULT_FPS_OF, EPOCH_NS, TrajectoryError
@@ -156,7 +156,7 @@ def test_simulate_writes_a_complete_sequence(tmp_path, cli):
     assert [e.stamp_ns for e in entries] == [p.stamp_ns for p in truth] == [
         p.stamp_ns for p in make_trajectory("paper", 0.5, 6)
     ]
-    assert read_mono_png(entries[0].path).shape == (1024, 1280)
+    assert read_image(entries[0].path).shape == (1024, 1280)
     assert np.allclose(read_camera_info(out / "camera.yaml").camera_matrix, PAPER.camera_matrix)
     assert load_target(out / "target.yaml").ids == (0, 1, 2, 3, 4, 5)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]  # no staging left behind

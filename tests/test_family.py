@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from drivers.sequence import read_mono_png, read_sequence_index
+from drivers.sequence import read_image, read_sequence_index
 from fakes.family import (
     BLANK_VIEW_SHARE,
     CUBE_HALF,
@@ -113,7 +113,7 @@ def test_a_rendered_case_is_a_sequence_with_its_description(tmp_path, cases):
     render_case(short, tmp_path / "seq")
     entries = read_sequence_index(tmp_path / "seq")
     assert len(entries) == 4
-    image = read_mono_png(entries[0].path)
+    image = read_image(entries[0].path)
     assert image.shape == (case.calibration.height, case.calibration.width)
     described = json.loads((tmp_path / "seq" / "family.json").read_text())
     assert described["seed"] == case.seed and described["camera"]["fps"] == case.robot.fps

@@ -24,7 +24,7 @@ import pytest
 
 from calib.boards import parse_board
 from calib.camera_info import CameraCalibration, read_camera_info, to_yaml, write_camera_info
-from drivers.sequence import SequenceWriter, read_mono_png, read_sequence_index
+from drivers.sequence import SequenceWriter, read_image, read_sequence_index
 from fakes.board_views import board_views, synthetic_board_camera
 from tests.conftest import REPO
 
@@ -107,7 +107,7 @@ def test_kill_9_at_random_moments_during_record_leaves_a_readable_sequence(tmp_p
         assert len(entries) >= 1
         for index, entry in enumerate(entries, start=1):
             assert entry.stamp_ns == 1_000_000_000 + index * 50_000_000
-            np.testing.assert_array_equal(read_mono_png(entry.path), images[index % len(images)])
+            np.testing.assert_array_equal(read_image(entry.path), images[index % len(images)])
 
 
 @pytest.fixture(scope="module")

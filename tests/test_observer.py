@@ -62,7 +62,7 @@ def test_the_masked_search_paints_the_quiet_zone_grey_level_numpy_would_give():
     """The masked search's white level (the 90th percentile of the region's pixels) comes
     from a histogram of the grey levels: it must equal numpy's linear percentile, on
     uniform, constant, two-level and tiny sets of pixels."""
-    from positioning.observer import _grey_percentile
+    from positioning.tag_search import grey_percentile
 
     rng = np.random.default_rng(16)
     samples = [rng.integers(0, 256, int(n)).astype(np.uint8) for n in rng.integers(1, 5000, 300)]
@@ -70,4 +70,4 @@ def test_the_masked_search_paints_the_quiet_zone_grey_level_numpy_would_give():
                 np.where(rng.random(999) < 0.8, 20, 240).astype(np.uint8)]
     for values in samples:
         for q in (10.0, 50.0, 90.0):
-            assert _grey_percentile(values, q) == pytest.approx(np.percentile(values, q), abs=1e-9)
+            assert grey_percentile(values, q) == pytest.approx(np.percentile(values, q), abs=1e-9)

@@ -47,11 +47,29 @@ def test_pose_prints_one_json_line_per_image(cli, scene):
                    "detail": one["detail"], "tags_seen": [0]}
 
 
+@pytest.mark.parametrize(("bits", "aligned"), [(12, "low"), (12, "high"), (16, "high")])
+def test_a_16_bit_image_gives_the_pose_its_8_bit_original_gives(cli, scene, bits, aligned):
+    """Mono12 in the low bits of its container (a camera's), in the high bits (TUM-VI's
+    PNGs) and Mono16: each scaled to the bits it uses, so the pose is the 8-bit one's."""
+    root, truth = scene
+    eight = cv2.imread(str(root / "three.png"), cv2.IMREAD_GRAYSCALE).astype(np.uint16)
+    deep = eight << (bits - 8) | (eight >> (16 - bits) if bits > 8 else 0)  # 255 -> all bits set
+    if aligned == "high":
+        deep = deep << (16 - bits)
+    path = root / f"three_{bits}_{aligned}.png"
+    cv2.imwrite(str(path), deep.astype(np.uint16))
+    result = cli("pose", "--target", str(root / "cube.yaml"), "--calib", str(root / "camera.yaml"),
+                 str(root / "three.png"), str(path))
+    assert result.returncode == 0, result.stderr
+    original, converted = (json.loads(line) for line in result.stdout.splitlines())
+    assert converted["ok"] and converted["tags"] == original["tags"]
+    assert np.allclose(converted["position"], original["position"], atol=1e-6)
+
+
 def _bad_inputs(root):
     (root / "empty.png").write_bytes(b"")
     (root / "text.png").write_text("hello, not a picture\n")
-    deep = (np.arange(1280 * 1024, dtype=np.uint32).reshape(1024, 1280) % 65535).astype(np.uint16)
-    cv2.imwrite(str(root / "deep.png"), deep)
+    cv2.imwrite(str(root / "float.tiff"), np.zeros((1024, 1280), np.float32))
     cv2.imwrite(str(root / "small.png"), np.zeros((480, 640), np.uint8))
     (root / "bad_target.yaml").write_text("family: tag36h11\ncube: {side: 0.10, tag_size: 0.144, ids: [0, 1, 2, 3, 4, 5]}\n")
     (root / "dup_target.yaml").write_text(
@@ -66,7 +84,7 @@ def _bad_inputs(root):
     [
         ("cube.yaml", "empty.png", "empty.png: empty file"),
         ("cube.yaml", "text.png", "text.png: not an image"),
-        ("cube.yaml", "deep.png", "deep.png: I;16 image (16-bit or float)"),
+        ("cube.yaml", "float.tiff", "float.tiff: expected an 8- or 16-bit image, got float32"),
         ("cube.yaml", "small.png", "small.png: image is 640x480 but the calibration is for 1280x1024"),
         ("cube.yaml", "missing.png", "missing.png: image not found"),
         ("bad_target.yaml", "three.png", "bad_target.yaml: cube.tag_size 0.144 m must be positive and no larger"),

@@ -19,7 +19,7 @@ from drivers.base import CameraSettings, EndOfStream, FrameTimeout
 from drivers.fake_gige import GvFake
 from drivers.recorder import record_sequence
 from drivers.replay import ReplayCamera, parse_replay_argument
-from drivers.sequence import SequenceWriter, camera_dir, read_mono_png, read_sequence_index
+from drivers.sequence import SequenceWriter, camera_dir, read_image, read_sequence_index
 
 
 @pytest.fixture(autouse=True)
@@ -141,7 +141,7 @@ def test_signal_during_record_leaves_a_valid_sequence(gv_fake, tmp_path, sig):
     on_disk = sorted((camera_dir(out) / "data").iterdir())
     assert [p.name for p in on_disk] == sorted(e.path.name for e in entries)  # no .part, no orphan
     for entry in entries:
-        assert read_mono_png(entry.path).shape == (1024, 1280)
+        assert read_image(entry.path).shape == (1024, 1280)
 
 
 def test_record_frames_from_replay_cli(cli, tmp_path):
@@ -182,7 +182,7 @@ def test_unreadable_sequence_is_a_one_line_error(cli, tmp_path):
     (camera_dir(bad) / "data.csv").write_text("#timestamp [ns],filename\n1,1.png\n")
     dropped = cli("record", "--camera", f"replay:{bad}", "--out", str(tmp_path / "o2"))
     assert dropped.returncode == 0 and "Traceback" not in dropped.stderr, dropped.stderr
-    assert "1.png: image file missing or empty" in dropped.stderr and "1 incomplete" in dropped.stdout, dropped
+    assert "1.png: image not found" in dropped.stderr and "1 incomplete" in dropped.stdout, dropped
     assert_user_error(cli("record", "--camera", f"replay:{tmp_path / 'nowhere'}", "--out", str(tmp_path / "o3")),
                       "sequence directory not found")
     existing = tmp_path / "existing"

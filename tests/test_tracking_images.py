@@ -15,7 +15,7 @@ import pytest
 from helpers import half_resolution
 
 from calib.camera_info import CameraCalibration
-from drivers.sequence import read_mono_png, read_sequence_index
+from drivers.sequence import read_image, read_sequence_index
 from fakes.optics import project, undistort_pixels
 from fakes.room import default_room
 from fakes.sequence import write_synthetic_sequence
@@ -36,7 +36,7 @@ SYNC = replace(SYNC, tracker=replace(SYNC.tracker, bundle=BundleOptions(backgrou
 
 def load(directory: Path) -> tuple[list[np.ndarray], list[StampedPose]]:
     entries = read_sequence_index(directory)
-    return [read_mono_png(e.path) for e in entries], read_tum(directory / "groundtruth.tum")
+    return [read_image(e.path) for e in entries], read_tum(directory / "groundtruth.tum")
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from helpers import half_resolution
 from test_tracking_scenarios import SYNC, score_results
 
 from bench.odometry import mount_of
-from drivers.sequence import read_mono_png, read_sequence_index
+from drivers.sequence import read_image, read_sequence_index
 from fakes.odometry import simulate_odometry
 from fakes.sequence import write_synthetic_sequence
 from fakes.trajectories import make_trajectory
@@ -35,7 +35,7 @@ def _run(sequence, truth, odometry_rows, mount):
                 row = rows[k]
                 buffer.add(row["stamp_ns"], row["position"], row["orientation"], now_ns=row["arrival_ns"])
                 k += 1
-            results.append(processor.process(read_mono_png(entry.path), entry.stamp_ns, i))
+            results.append(processor.process(read_image(entry.path), entry.stamp_ns, i))
     finally:
         processor.close()
     return score_results(results, truth), results

@@ -58,7 +58,7 @@ def run(args) -> int:
     from calib.camera_info import read_camera_info
     from cubeloc.atomic import atomic_write_text
     from daemon.commands.calibrate import expand_images
-    from daemon.commands.pose import check_image, load_grey
+    from daemon.commands.pose import load_grey
     from positioning.target import load_target
     from positioning.target_calibration import calibrate_target, observe
 
@@ -73,9 +73,10 @@ def run(args) -> int:
     calibration = read_camera_info(args.calib)
     paths = expand_images(args.images)
     for path in paths:
-        check_image(path, calibration.width, calibration.height)
+        load_grey(path, calibration.width, calibration.height)  # every image checked first
     print(f"detecting the tags of {args.target} in {len(paths)} images ...", flush=True)
-    views, skipped = observe(((str(p), load_grey(p)) for p in paths), nominal, calibration)
+    views, skipped = observe(((str(p), load_grey(p, calibration.width, calibration.height)) for p in paths),
+                             nominal, calibration)
     result = calibrate_target(views, nominal, calibration, skipped)
     print(result.report())
     header = (
@@ -100,7 +101,7 @@ def place(args, out: Path) -> int:
     from calib.camera_info import read_camera_info
     from cubeloc.atomic import atomic_write_text
     from daemon.commands.calibrate import expand_images
-    from daemon.commands.pose import check_image, load_grey
+    from daemon.commands.pose import load_grey
     from daemon.config import Config, load_config
     from positioning.geometry import Transform
     from positioning.single_frame import TargetPoseProcessor
@@ -114,11 +115,11 @@ def place(args, out: Path) -> int:
     T_map_first = (load_config(args.config) if args.config else Config()).frames.robot_frames().T_map_target
     paths = expand_images(args.images)
     for path in paths:
-        check_image(path, calibration.width, calibration.height)
+        load_grey(path, calibration.width, calibration.height)  # every image checked first
     poses = {name: TargetPoseProcessor(target, calibration) for name, target in (("first", first), ("other", other))}
     relations = []
     for path in paths:
-        image = load_grey(path)
+        image = load_grey(path, calibration.width, calibration.height)
         found = {}
         for name, processor in poses.items():
             processor.reset()

@@ -8,6 +8,10 @@ imported inside the function so ``cubeloc --help`` stays fast.
 ``cube.pdf`` (one page per face at true scale, plus the unfolded net when the cube fits
 on A3), ``face_<n>_id<id>.png`` (each face at ``--dpi``, with that DPI in the file),
 ``cube_layout.png`` (which tag goes where) and ``target.yaml`` (the target file used).
+
+``aprilgrid`` prints (or writes with ``--out``) a Kalibr AprilGrid target file, which
+cubeloc reads as a target and Kalibr as its calibration target; print the board itself
+with Kalibr's ``kalibr_create_target_pdf``.
 """
 
 from __future__ import annotations
@@ -20,10 +24,12 @@ from cubeloc.errors import InputFileError
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("generate", help="printable targets at true physical scale (cube, board)")
+    parser = subparsers.add_parser("generate", help="printable targets at true physical scale (cube, board), "
+                                   "target files (aprilgrid)")
     kinds = parser.add_subparsers(dest="kind", metavar="KIND", required=True)
     register_cube(kinds)
     register_board(kinds)
+    register_aprilgrid(kinds)
 
 
 def register_cube(kinds) -> None:
@@ -132,4 +138,42 @@ def run_board(args) -> int:
         f"{args.dpi:g} dpi; print at 100 % (actual size), check the 100 mm bar, then "
         f"cubeloc calibrate --board {board.text} ..."
     )
+    return 0
+
+
+def register_aprilgrid(kinds) -> None:
+    parser = kinds.add_parser(
+        "aprilgrid", help="a Kalibr AprilGrid target file (cubeloc --target, Kalibr's target.yaml)",
+        description="Kalibr's AprilGrid target file: tag36h11 tags with a two-cell border, ids row by row from "
+        "the bottom-left, a black square in each gap corner. Print the board with kalibr_create_target_pdf.",
+    )
+    parser.add_argument("--cols", type=int, default=6, help="tags across (default 6)")
+    parser.add_argument("--rows", type=int, default=6, help="tags down (default 6)")
+    parser.add_argument("--tag-size", type=float, default=0.088, metavar="M", help="tag edge in metres (default 0.088)")
+    parser.add_argument("--spacing", type=float, default=0.3, metavar="FRACTION",
+                        help="gap between tags as a fraction of the tag edge (default 0.3)")
+    parser.add_argument("--out", metavar="FILE", help="write the file here instead of printing it")
+    parser.add_argument("--force", action="store_true", help="replace an existing file")
+    parser.set_defaults(func=run_aprilgrid)
+
+
+def run_aprilgrid(args) -> int:
+    from cubeloc.atomic import atomic_write_bytes
+    from positioning.target import make_aprilgrid
+
+    if not 0.001 <= args.tag_size <= 10:
+        raise InputFileError(f"--tag-size {args.tag_size:g}: give the tag edge in metres (0.001-10)")
+    grid = make_aprilgrid(args.rows, args.cols, args.tag_size, args.spacing).grid
+    text = grid.to_kalibr_yaml()
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise InputFileError(f"{out}: already exists; use --force to replace it")
+    if not out.parent.is_dir():
+        raise InputFileError(f"--out {out}: directory {out.parent} does not exist")
+    atomic_write_bytes(out, text.encode())
+    print(f"wrote {out}: a {grid.cols}x{grid.rows} AprilGrid of {grid.tag_size_m * 1000:g} mm tags, "
+          f"gaps {grid.gap_m * 1000:g} mm; use it as cubeloc --target and as Kalibr's --target")
     return 0

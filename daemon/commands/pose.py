@@ -3,7 +3,7 @@
 Prints one JSON object per image (interfaces.md): ``{"image", "ok": true, "position",
 "orientation", "planes", "tags", "reproj_rms_px", "covariance", ...}`` or ``{"image",
 "ok": false, "reason", "detail"}`` when the image gives no pose. Every image is checked
-before the first line is printed, so a bad file (not an image, empty, 16-bit, the wrong
+before the first line is printed, so a bad file (not an image, empty, float, the wrong
 size for the calibration) stops the command with one line and exit 2, and nothing
 half-done is printed. Each image is solved on its own (no region prediction between them).
 """
@@ -15,9 +15,6 @@ import sys
 from pathlib import Path
 
 from cubeloc.errors import InputFileError
-
-# Pillow image modes that hold 8-bit grey or can be turned into it without loss of meaning.
-EIGHT_BIT_MODES = {"L", "P", "RGB", "RGBA", "LA", "1", "CMYK", "YCbCr"}
 
 
 def register(subparsers) -> None:
@@ -31,43 +28,20 @@ def register(subparsers) -> None:
     parser.add_argument("--no-two-faces", action="store_true", help="refuse poses from two faces")
     parser.add_argument("--max-reproj-rms", type=float, default=1.5, metavar="PX",
                         help="refuse poses whose reprojection RMS exceeds this (default 1.5 px)")
-    parser.add_argument("images", nargs="+", metavar="IMAGE", help="8-bit images (PNG, JPEG, ...)")
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="images (PNG, JPEG, ...; 8- or 16-bit, grey or colour)")
     parser.set_defaults(func=run)
 
 
-def check_image(path: Path, width: int, height: int) -> None:
-    """Raise InputFileError unless ``path`` is an 8-bit image of the calibrated size."""
-    from PIL import Image, UnidentifiedImageError
+def load_grey(path: Path, width: int, height: int):
+    """(H, W) uint8 grey image of the calibrated size (8- or 16-bit files, ``read_image``);
+    InputFileError naming the file otherwise."""
+    from drivers.sequence import read_image
 
-    if not path.is_file():
-        raise InputFileError(f"{path}: image not found")
-    if path.stat().st_size == 0:
-        raise InputFileError(f"{path}: empty file, not an image")
-    try:
-        with Image.open(path) as image:
-            mode, size = image.mode, image.size
-    except UnidentifiedImageError:
-        raise InputFileError(f"{path}: not an image Pillow or OpenCV can read (PNG, JPEG, TIFF, ...)") from None
-    except OSError as exc:
-        raise InputFileError(f"{path}: cannot read image ({exc})") from None
-    if mode not in EIGHT_BIT_MODES:
+    image = read_image(path)
+    if image.shape != (height, width):
         raise InputFileError(
-            f"{path}: {mode} image (16-bit or float); cubeloc pose needs 8-bit images, "
-            "as the camera delivers Mono8: convert it first"
+            f"{path}: image is {image.shape[1]}x{image.shape[0]} but the calibration is for {width}x{height}"
         )
-    if size != (width, height):
-        raise InputFileError(
-            f"{path}: image is {size[0]}x{size[1]} but the calibration is for {width}x{height}"
-        )
-
-
-def load_grey(path: Path):
-    """(H, W) uint8 grey image."""
-    import cv2
-
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:  # Pillow read the header but OpenCV cannot decode the data
-        raise InputFileError(f"{path}: OpenCV cannot decode this image")
     return image
 
 
@@ -104,11 +78,11 @@ def run(args) -> int:
         raise InputFileError(f"--max-reproj-rms {args.max_reproj_rms}: must be a positive number of pixels")
     paths = [Path(p) for p in args.images]
     for path in paths:
-        check_image(path, calibration.width, calibration.height)
+        load_grey(path, calibration.width, calibration.height)  # every image checked before the first line
     options = PoseOptions(allow_two_faces=not args.no_two_faces, max_reproj_rms_px=args.max_reproj_rms)
     processor = TargetPoseProcessor(target, calibration, options)
     for seq, path in enumerate(paths):
         processor.reset()  # images are independent views
-        result = processor.process(load_grey(path), 0, seq)
+        result = processor.process(load_grey(path, calibration.width, calibration.height), 0, seq)
         print(json.dumps(result_line(str(path), result)), flush=True)
     return 0

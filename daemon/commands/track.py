@@ -72,7 +72,7 @@ def run(args) -> int:
     from daemon.config import Config, load_config
     from daemon.logs import configure_logging
     from daemon.messages import UnpublishablePose, encode, pose_payload
-    from drivers.sequence import read_mono_png, read_sequence_index
+    from drivers.sequence import read_image, read_sequence_index
     from positioning.evaluation import absolute_trajectory_error
     from positioning.target import load_target
     from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
@@ -120,7 +120,7 @@ def run(args) -> int:
     try:
         for seq, entry in enumerate(entries):
             try:
-                image = read_mono_png(entry.path)
+                image = read_image(entry.path)
                 if image.shape != (calibration.height, calibration.width):
                     raise InputFileError(
                         f"{entry.path}: image is {image.shape[1]}x{image.shape[0]} but {args.calib} is for "

@@ -30,7 +30,7 @@ from positioning.estimator import FeatureState, FrameResult, FrameView, PoseEsti
 from positioning.geometry import Transform
 from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
-from positioning.target_pose import PoseOptions
+from positioning.target_pose import PoseOptions, count_planes
 from positioning.tracking.features import KltFrontEnd
 from positioning.tracking.map import Map
 from positioning.tracking.options import TrackerOptions
@@ -61,9 +61,22 @@ class TrackingProcessor:
         self.target = target
         self.calibration = calibration
         self.options = options or ProcessorOptions()
+        # Without the finer full-frame passes: on the family they find the cube a frame or
+        # two earlier, and the map's beginning moves with the reference frame (seed 0: the
+        # reference two frames earlier, 53 points on the longest baseline where 60 are
+        # needed, 98 -> 4 % coverage; docs/notes/2026-12-04-planar.md). They return when the
+        # initialisation stops hanging on which frame is its reference.
         self.observer = TargetObserver(target, calibration, self.options.pose, self.options.detector,
-                                       self.options.edge_refinement, edge_alignment=self.options.edge_alignment)
-        self.tracker = Tracker(calibration, self.options.tracker)
+                                       self.options.edge_refinement, edge_alignment=self.options.edge_alignment,
+                                       fine_search=False)
+        tracker_options = self.options.tracker
+        planes = count_planes(target, target.ids)
+        if planes < tracker_options.init.min_planes:
+            # A board has one plane: its poses are trusted when its two solutions are told
+            # apart by the data (target_pose._separated_plane), and the map starts on them.
+            tracker_options = dataclasses.replace(
+                tracker_options, init=dataclasses.replace(tracker_options.init, min_planes=planes))
+        self.tracker = Tracker(calibration, tracker_options)
         self.front_end = KltFrontEnd(self.options.tracker.features)
         self.relocaliser = Relocaliser(calibration, self.options.tracker)
         self._target_corners = np.concatenate([t.corners for t in target.tags])

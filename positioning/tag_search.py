@@ -1,0 +1,127 @@
+"""Where to look for a target's tags in an image: the regions a prior pose predicts, and how
+finely the AprilTag library's quad search must decimate to find tags of a given size.
+Used by ``TargetObserver`` (observer.py)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.camera_info import CameraCalibration
+from positioning.camera_model import project
+from positioning.detection import cells_across, library_decimate
+from positioning.geometry import Transform
+from positioning.target import Target
+
+# A predicted tag region grows by this fraction of the tag's size on each side, plus a
+# fixed margin: the camera moves between frames and the prediction is last frame's pose.
+REGION_GROWTH = 0.35
+REGION_MARGIN_PX = 16
+# The completion search after a pose from this frame's own tags needs less room: no motion
+# since the pose, and everything outside the predicted quiet zone is painted white anyway.
+# The smaller crop is cheaper to search (2 m: 0.70 against 0.88 ms for the missing tag);
+# over the range map's 480 views no pose lost and two gained a third face (at 0.1 one
+# lost a face: the crop's own margin matters to the decimated search).
+COMPLETION_GROWTH = 0.2
+# Tags seen more obliquely than this are not predicted: the library decoded a tag at 85 deg
+# on the range map (bench range), none beyond.
+MAX_PREDICTED_ANGLE_DEG = 87.0
+
+
+# A predicted tag this large (pixels) is searched with more decimation: its quad is still
+# 30 px or more in the decimated image, and a third cheaper to find.
+LARGE_TAG_PX = 90.0
+LARGE_TAG_DECIMATE = 3.0
+# The library's quad search finds a tag whose narrow width is at least this many pixels in
+# the decimated image (board renders at 640x480 to 1280x1024, blur 0.3-1 px: all found
+# from 13 px, a third lost at 10-13); a search is decimated so that the smallest tag it
+# expects keeps twice that, the tags of one target in one view differing in size by up to
+# 2x (depth and foreshortening).
+MIN_DECIMATED_TAG_PX = 13.0
+PAPER_FRAME_PIXELS = 1280 * 1024
+
+
+def decimate_for(width_px: float, most: float) -> float:
+    """The decimation (1 to ``most``, one the library performs) that keeps a tag
+    ``width_px`` wide findable with room."""
+    return library_decimate(min(most, width_px / (2.0 * MIN_DECIMATED_TAG_PX)))
+
+def finest_empty_decimate(shape: tuple[int, ...], quad_decimate: float) -> float:
+    """The decimation of the full-frame pass after an empty coarse one: the library's own
+    (``quad_decimate``) on the paper's 1280x1024 frame, and as much finer on a smaller frame
+    as keeps the pass's cost (pixels over decimation squared) the same: 1 at 640x480 and
+    752x480, where tags 13-26 px wide are otherwise found only beside larger ones."""
+    share = shape[0] * shape[1] / PAPER_FRAME_PIXELS
+    return library_decimate(quad_decimate * min(1.0, float(np.sqrt(share))))
+
+
+# Recovery searches this many tag sizes around a lone tag for its neighbours.
+NEIGHBOURHOOD_TAG_SIZES = 1.2
+# A tag needs a white quiet zone one cell wide; the masked search keeps this much of it.
+QUIET_ZONE_KEPT_CELLS = 0.8
+
+
+def grey_percentile(values: np.ndarray, q: float) -> float:
+    """``np.percentile(values, q)`` (linear interpolation) of uint8 grey levels, from their
+    histogram: the same value in 44 against 200 us for the 40,000 pixels of a tag region."""
+    counts = np.cumsum(np.bincount(values, minlength=256))
+    position = q / 100.0 * (len(values) - 1)
+    low = int(position)
+    below = int(np.searchsorted(counts, low, side="right"))
+    above = int(np.searchsorted(counts, min(low + 1, len(values) - 1), side="right"))
+    return below + (position - low) * (above - below)
+
+
+@dataclass(frozen=True)
+class TagRegion:
+    tag_id: int
+    roi: tuple[int, int, int, int]  # x0, y0, x1, y1 pixels
+    quiet_zone: np.ndarray  # (4, 2) pixels: the tag and most of its white margin, predicted
+    size_px: float = 0.0  # the tag's predicted size (longest side of its pixel box)
+
+
+def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
+                          growth: float = REGION_GROWTH, margin_px: int = REGION_MARGIN_PX) -> list[TagRegion]:
+    """Where each tag facing the camera at ``T_world_camera`` should appear, one pixel box
+    per tag, enlarged for motion; tags behind the camera or out of the image are left out."""
+    T_camera_world = T_world_camera.inverse()
+    cos_limit = np.cos(np.radians(MAX_PREDICTED_ANGLE_DEG))
+    # Far outside the field of view the distortion polynomial folds points back into the
+    # image (measured: a cube 60+ degrees off-axis gave a whole-image box, 18 ms of search
+    # per frame for nothing). Keep to a field of view half as wide again as the image's.
+    k = calibration.camera_matrix
+    low_n = -k[:2, 2] / np.diag(k)[:2]
+    high_n = (np.array([calibration.width, calibration.height]) - 1 - k[:2, 2]) / np.diag(k)[:2]
+    spread = 0.25 * (high_n - low_n)
+    tags = target.tags
+    centres = np.array([tag.center for tag in tags])
+    normals = np.array([tag.normal for tag in tags])
+    to_camera = T_world_camera.translation - centres
+    # not seen edge-on or from behind, in front of the camera, and near the field of view
+    keep = np.einsum("ij,ij->i", normals, to_camera) > cos_limit * np.linalg.norm(to_camera, axis=1)
+    in_camera = T_camera_world.apply(np.concatenate([tag.corners for tag in tags])).reshape(len(tags), 4, 3)
+    keep &= np.all(in_camera[:, :, 2] > 0.05, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = in_camera[:, :, :2] / in_camera[:, :, 2:]
+    keep &= np.all((xn >= low_n - spread) & (xn <= high_n + spread), axis=(1, 2))
+    chosen = np.flatnonzero(keep)
+    if len(chosen) == 0:
+        return []
+    grow = 1.0 + 2.0 * QUIET_ZONE_KEPT_CELLS / cells_across(target.family, target.border_bits)
+    corners = in_camera[chosen]
+    centre = corners.mean(axis=1, keepdims=True)
+    outline = np.concatenate([corners, centre + grow * (corners - centre)], axis=1)  # (K, 8, 3)
+    pixels = project(outline.reshape(-1, 3), calibration).reshape(len(chosen), 8, 2)
+    regions = []
+    for index, outline_px in zip(chosen, pixels, strict=True):
+        quad, quiet_zone = outline_px[:4], outline_px[4:]
+        low, high = quad.min(axis=0), quad.max(axis=0)
+        pad = (high - low).max() * growth + margin_px
+        x0, y0 = np.floor(low - pad).astype(int)
+        x1, y1 = np.ceil(high + pad).astype(int) + 1
+        x0, y0 = max(int(x0), 0), max(int(y0), 0)
+        x1, y1 = min(int(x1), calibration.width), min(int(y1), calibration.height)
+        if x1 - x0 >= 16 and y1 - y0 >= 16:
+            regions.append(TagRegion(tags[index].tag_id, (x0, y0, x1, y1), quiet_zone, float((high - low).max())))
+    return regions
