@@ -156,7 +156,10 @@ class Target:
         return np.concatenate([self.tag(i).corners for i in tag_ids]).reshape(-1, 3)
 
     def to_yaml(self) -> str:
-        """The explicit-tags form (always loadable, whatever the target was made from)."""
+        """The explicit-tags form (always loadable, whatever the target was made from); a
+        Kalibr AprilGrid's own file for an AprilGrid, so that its gap squares stay known."""
+        if self.grid is not None:
+            return self.grid.to_kalibr_yaml()
         doc: dict[str, Any] = {"family": self.family}
         if self.border_bits != 1:
             doc["border_bits"] = self.border_bits

@@ -322,7 +322,7 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
         angle = float(np.degrees(np.linalg.norm(cv2.Rodrigues(tag_rotation[tag.tag_id])[0])))
         tags.append(TagResult(tag.tag_id, before.views, True, False, (tag_centre[tag.tag_id] - problem.centres[tag.tag_id]) * 1000,
                               angle, sd[3:] * 1000, np.degrees(sd[:3]), before.rms_px))
-    refined = Target(nominal.family, tuple(refined_tags), None, "")
+    refined = Target(nominal.family, tuple(refined_tags), None, "", nominal.border_bits)
     validate_target(refined, "refined target")
     return dataclasses.replace(corners_result, refined=refined, tags=tuple(tags), edge_profiles=profiles,
                                edge_rms_px=float(np.sqrt(sigma2)))
@@ -436,7 +436,7 @@ class _Problem:
             sd = np.sqrt(np.clip(np.diag(block), 0.0, None))
             tags.append(TagResult(tag.tag_id, counts.get(tag.tag_id, 0), True, False, p[3:] * 1000,
                                   float(np.degrees(np.linalg.norm(p[:3]))), sd[3:] * 1000, np.degrees(sd[:3]), rms))
-        refined = Target(self.nominal.family, tuple(refined_tags), None, "")
+        refined = Target(self.nominal.family, tuple(refined_tags), None, "", self.nominal.border_bits)
         validate_target(refined, "refined target")
         per_view = []
         for v, view in enumerate(self.views):

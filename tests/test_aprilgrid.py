@@ -40,6 +40,8 @@ def test_kalibrs_target_file_is_a_target_with_kalibrs_layout(tmp_path):
         corners = grid.tag(tag_id).corners
         assert np.allclose(corners.min(axis=0), [col * pitch, row * pitch, 0.0])
         assert np.allclose(grid.tag(tag_id).normal, [0.0, 0.0, 1.0])  # facing out of the print
+    # written back (a map's or a sequence's copy) as Kalibr's file: the squares stay known
+    assert grid.to_yaml() == KALIBR_YAML
     for bad, message in (("target_type: 'checkerboard'\ntargetCols: 6\n", "has no tags"),
                          ("target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\n", "tagSpacing"),
                          (KALIBR_YAML.replace("tagCols: 6", "tagCols: six"), "tagCols must be a whole number")):
