@@ -60,6 +60,8 @@ class CameraConfig(Section):
     stream_buffers: int = Field(8, ge=2, le=64, description="buffers in flight (usbfs budget: cubeloc doctor)")
     usb_mode: Literal["async", "sync", "default"] = Field("async", description="USB3 Vision transfers")
     usb_bandwidth_mbps: float | None = Field(None, gt=0, le=40_000, description="None: the camera's own limit")
+    pixel_format: Literal["Mono8", "Mono10", "Mono12", "Mono16"] = Field(
+        "Mono8", description="Mono10/12/16 (unpacked) where the camera has them, brought to 8 bits")
 
     def settings(self) -> CameraSettings:
         return CameraSettings(
@@ -74,6 +76,7 @@ class CameraConfig(Section):
             stream_buffers=self.stream_buffers,
             usb_mode=self.usb_mode,
             usb_bandwidth_mbps=self.usb_bandwidth_mbps,
+            pixel_format=self.pixel_format,
         )
 
 

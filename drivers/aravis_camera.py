@@ -39,6 +39,7 @@ import structlog
 
 from drivers.aravis_settings import apply_settings, read_settings
 from drivers.base import (
+    PIXEL_BITS,
     CameraBase,
     CameraNotFound,
     CameraSettings,
@@ -372,12 +373,18 @@ class AravisCamera(CameraBase):
             return None
         width, height = buffer.get_image_width(), buffer.get_image_height()
         data = buffer.get_image_data()  # the one copy: C buffer -> bytes
-        if len(data) < width * height:
+        bits = PIXEL_BITS[self._settings.pixel_format]
+        size = width * height * (1 if bits == 8 else 2)
+        if len(data) < size:
             self._stats.delivered -= 1
             self._stats.incomplete += 1
             self._stats.incomplete_causes["short_data"] = self._stats.incomplete_causes.get("short_data", 0) + 1
             return None
-        image = np.frombuffer(data, dtype=np.uint8, count=width * height).reshape(height, width)
+        if bits == 8:
+            image = np.frombuffer(data, dtype=np.uint8, count=width * height).reshape(height, width)
+        else:  # two bytes a pixel, little-endian (GenICam's unpacked Mono10/12/16): the top 8 bits
+            wide = np.frombuffer(data, dtype="<u2", count=width * height).reshape(height, width)
+            image = (wide >> (bits - 8)).astype(np.uint8)
         receipt_ns = buffer.get_system_timestamp() or time.time_ns()
         stamp_ns = self._clock.map(device_ns, receipt_ns).stamp_ns
         return Frame(image=image, frame_id=buffer.get_frame_id(), device_timestamp_ns=device_ns,

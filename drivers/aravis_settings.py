@@ -31,10 +31,11 @@ def apply_settings(cam, features: FeatureMap, settings: CameraSettings, Aravis, 
     try:
         cam.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
         formats = cam.dup_available_pixel_formats_as_strings() or []
-        if "Mono8" not in formats:
-            raise FeatureNotSupported(f"camera {name} has no PixelFormat Mono8 (it offers "
-                                      f"{', '.join(formats) or 'none'}); cubeloc needs 8-bit mono")
-        cam.set_pixel_format_from_string("Mono8")
+        if settings.pixel_format not in formats:
+            raise FeatureNotSupported(f"camera {name} has no PixelFormat {settings.pixel_format} (it offers "
+                                      f"{', '.join(formats) or 'none'}); set camera.pixel_format to a mono "
+                                      "format it has (Mono8, Mono10, Mono12 or Mono16)")
+        cam.set_pixel_format_from_string(settings.pixel_format)
         _set_region(cam, settings, name)
         _set_trigger(cam, features, settings.trigger)
         _set_frame_rate(cam, features, settings.frame_rate_hz)
@@ -164,4 +165,5 @@ def read_settings(cam, requested: CameraSettings) -> CameraSettings:
         exposure_us=cam.get_exposure_time() if cam.is_exposure_time_available() else None,
         gain_db=cam.get_gain() if cam.is_gain_available() else None,
         frame_rate_hz=cam.get_frame_rate() if cam.is_frame_rate_available() else None,
+        pixel_format=cam.get_pixel_format_as_string(),
     )

@@ -17,6 +17,8 @@ import numpy as np
 from cubeloc.errors import CubelocError
 
 UsbMode = Literal["async", "sync", "default"]
+PixelFormat = Literal["Mono8", "Mono10", "Mono12", "Mono16"]
+PIXEL_BITS: dict[str, int] = {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono16": 16}
 TriggerMode = Literal["free", "software", "line0"]
 
 
@@ -83,6 +85,9 @@ class CameraSettings:
     # rates), "sync" one at a time, "default" leaves Aravis' own default
     usb_mode: UsbMode = "async"
     usb_bandwidth_mbps: float | None = None  # DeviceLinkThroughputLimit; None: the camera's
+    # What the camera streams: 8-bit mono, or 10/12/16 bits in two bytes a pixel (unpacked),
+    # brought to Mono8 by dropping the low bits (``PIXEL_BITS``). Aravis only.
+    pixel_format: PixelFormat = "Mono8"
 
 
 @dataclass(frozen=True)

@@ -74,6 +74,21 @@ def test_fake_interface_grabs_1280x1024_mono8():
     assert camera.stats.delivered == 5 and camera.stats.incomplete == camera.stats.bad_timestamp == 0
 
 
+def test_a_16_bit_stream_arrives_as_its_top_8_bits():
+    """``pixel_format = "Mono16"`` (Aravis' fake offers it; Mono10/12 are read the same way,
+    two bytes a pixel): Mono8 frames of the stream's top 8 bits, and the camera says which
+    format it streams. A format it lacks is refused by name, with those it has."""
+    with AravisCamera("Fake_1", CameraSettings(frame_rate_hz=25, pixel_format="Mono16")) as camera:
+        assert camera.read_settings().pixel_format == "Mono16"
+        camera.start()
+        frames = grab(camera, 3)
+    for frame in frames:
+        assert frame.image.shape == (1024, 1280) and frame.image.dtype == np.uint8 and np.ptp(frame.image) > 0
+    with (pytest.raises(FeatureNotSupported, match=r"no PixelFormat Mono12 \(it offers .*Mono16"),
+          AravisCamera("Fake_1", CameraSettings(pixel_format="Mono12")) as camera):
+        camera.start()
+
+
 def test_software_trigger_gives_one_frame_per_request():
     with AravisCamera("Fake_1", CameraSettings(trigger="software")) as camera:
         camera.start()
