@@ -37,6 +37,7 @@ import time
 import numpy as np
 import structlog
 
+from cubeloc.images import to_mono8
 from drivers.aravis_settings import apply_settings, read_settings
 from drivers.base import (
     PIXEL_BITS,
@@ -383,8 +384,7 @@ class AravisCamera(CameraBase):
         if bits == 8:
             image = np.frombuffer(data, dtype=np.uint8, count=width * height).reshape(height, width)
         else:  # two bytes a pixel, little-endian (GenICam's unpacked Mono10/12/16): the top 8 bits
-            wide = np.frombuffer(data, dtype="<u2", count=width * height).reshape(height, width)
-            image = (wide >> (bits - 8)).astype(np.uint8)
+            image = to_mono8(np.frombuffer(data, dtype="<u2", count=width * height).reshape(height, width), bits)
         receipt_ns = buffer.get_system_timestamp() or time.time_ns()
         stamp_ns = self._clock.map(device_ns, receipt_ns).stamp_ns
         return Frame(image=image, frame_id=buffer.get_frame_id(), device_timestamp_ns=device_ns,

@@ -95,8 +95,6 @@ def read_image(path: Path) -> np.ndarray:
         raise InputFileError(f"{path}: expected an 8- or 16-bit image, got {image.dtype}") from None
 
 
-
-
 class SequenceWriter:
     """Write frames into a new sequence directory, safe to interrupt at any point."""
 

@@ -3,9 +3,10 @@
 For a cube target each face is one quad of the cube's side with its tag centred on it (a
 white margin around the black border, as printed). For a Kalibr AprilGrid each tag is a
 plate half a gap wider all round, with black squares touching its corners. For any other
-target each tag is a plate: the tag with a one-cell white margin. Tag cells are tag36h11 (or the target's
-family) bit patterns from ``cv2.aruco.generateImageMarker``, so the tag's 3-D corners
-TL, TR, BR, BL fall exactly on the outer corners of the marker image's black border.
+target each tag is a plate: the tag with a one-cell white margin. Tag cells are tag36h11
+(or the target's family) bit patterns from ``cv2.aruco.generateImageMarker``, so the tag's
+3-D corners TL, TR, BR, BL fall exactly on the outer corners of the marker image's black
+border.
 """
 
 from __future__ import annotations

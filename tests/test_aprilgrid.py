@@ -8,9 +8,11 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 from conftest import real_photographs
 
 from calib.camera_info import CameraCalibration, paper_camera, write_camera_info
+from cubeloc.errors import InputFileError
 from drivers.sequence import read_image
 from fakes import render_view
 from fakes.planar_views import rendered_board_view
@@ -45,8 +47,8 @@ def test_kalibrs_target_file_is_a_target_with_kalibrs_layout(tmp_path):
     for bad, message in (("target_type: 'checkerboard'\ntargetCols: 6\n", "has no tags"),
                          ("target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\n", "tagSpacing"),
                          (KALIBR_YAML.replace("tagCols: 6", "tagCols: six"), "tagCols must be a whole number")):
-        with pytest.raises(Exception, match=message):
-            parse_target(__import__("yaml").safe_load(bad), "bad.yaml")
+        with pytest.raises(InputFileError, match=message):
+            parse_target(yaml.safe_load(bad), "bad.yaml")
 
 
 def test_generate_aprilgrid_prints_a_file_cubeloc_and_kalibr_read(cli, tmp_path):

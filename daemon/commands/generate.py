@@ -99,6 +99,14 @@ def run_cube(args) -> int:
     return 0
 
 
+def _check_out(out: Path, force: bool) -> None:
+    """InputFileError unless ``out`` may be written: new (or ``force``), in a directory."""
+    if out.exists() and not force:
+        raise InputFileError(f"{out}: already exists; use --force to replace it")
+    if not out.parent.is_dir():
+        raise InputFileError(f"--out {out}: directory {out.parent} does not exist")
+
+
 def register_board(kinds) -> None:
     from calib.boards import BOARD_HELP, DEFAULT_BOARD
 
@@ -125,10 +133,7 @@ def run_board(args) -> int:
         raise InputFileError(f"--out {out}: give a .pdf (true scale) or a .png file name")
     if not 72 <= args.dpi <= 2400:
         raise InputFileError(f"--dpi {args.dpi:g}: choose a printer resolution between 72 and 2400")
-    if out.exists() and not args.force:
-        raise InputFileError(f"{out}: already exists; use --force to replace it")
-    if not out.parent.is_dir():
-        raise InputFileError(f"--out {out}: directory {out.parent} does not exist")
+    _check_out(out, args.force)
     board = parse_board(args.board)
     sheet = board_sheet(board, args.dpi)
     atomic_write_bytes(out, sheet_bytes(sheet, file_format))
@@ -169,10 +174,7 @@ def run_aprilgrid(args) -> int:
         sys.stdout.write(text)
         return 0
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise InputFileError(f"{out}: already exists; use --force to replace it")
-    if not out.parent.is_dir():
-        raise InputFileError(f"--out {out}: directory {out.parent} does not exist")
+    _check_out(out, args.force)
     atomic_write_bytes(out, text.encode())
     print(f"wrote {out}: a {grid.cols}x{grid.rows} AprilGrid of {grid.tag_size_m * 1000:g} mm tags, "
           f"gaps {grid.gap_m * 1000:g} mm; use it as cubeloc --target and as Kalibr's --target")
