@@ -103,6 +103,7 @@ def no_board_message(detections: list[ImageDetection], board: BoardSpec) -> str:
         "charuco": "check the board size (it counts squares), the dictionary and that the markers are in view",
         "circles": "check the grid size (it counts circles) and that the whole grid is in view",
         "acircles": "check the grid size (circles per row x rows) and that the whole grid is in view",
+        "aprilgrid": "check that the tags are tag36h11 with a two-cell black border and black squares between them",
     }[board.kind]
     return f"{message}; {advice}"
 

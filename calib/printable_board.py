@@ -63,7 +63,7 @@ def board_sheet(board: BoardSpec, dpi: float = 300.0) -> BoardSheet:
     scale = line_height / 22.0  # Hershey simplex capitals are about 22 px tall at scale 1
     thickness = max(1, int(round(scale * 1.5)))
     y = top + ph + int(round(0.004 * px_per_m))
-    pitch = "square" if board.kind in ("charuco", "chessboard") else "spacing"
+    pitch = {"charuco": "square", "chessboard": "square", "aprilgrid": "tag"}.get(board.kind, "spacing")
     lines = [
         f"--board {board.text}",
         f"{board.description}, {pitch} {board.size_m * 1000:.1f} mm",

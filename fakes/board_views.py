@@ -77,13 +77,15 @@ def render_view(
     pz = lam - t[2]
     bx = (r[0, 0] * px + r[1, 0] * py + r[2, 0] * pz) / stretch_x
     by = r[0, 1] * px + r[1, 1] * py + r[2, 1] * pz
-    behind = ~(lam > 0)
+    behind = ~(lam > 0) | ~np.isfinite(bx) | ~np.isfinite(by)  # or along the board's plane
     if board.kind == "chessboard":
+        bx[behind], by[behind] = -1e3, -1e3  # off the paper, finite
         sampled = _chessboard(board, bx, by)
         sampled[behind] = -1.0
     else:
         margin_m = board.size_m  # white paper around the pattern
-        px_per_m = 60.0 / board.size_m  # 60 texels per square: finer than the samples
+        # 60 texels per square, 20 per cell of an AprilGrid's tag: finer than the samples
+        px_per_m = (200.0 if board.kind == "aprilgrid" else 60.0) / board.size_m
         texture = _texture(board, px_per_m, margin_m)
         map_x = ((bx + margin_m) * px_per_m - 0.5).astype(np.float32)
         map_y = ((by + margin_m) * px_per_m - 0.5).astype(np.float32)

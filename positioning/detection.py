@@ -49,8 +49,8 @@ LIBRARY_PIXEL_OFFSET = 0.5  # library pixel-centre convention minus OpenCV's
 # library's own default floor is 10; its sure decodes reach 50-150).
 ARUCO_DECISION_MARGIN = 100.0
 # Saddle corners (``_saddle_corners``): the search window's half-width in cells (1-1.6
-# cells gave 0.25 px on the real EuRoC frame, 1 px 2.4 px, 2 cells 0.33 px), at most
-# this many pixels, and the iteration's stop.
+# cells gave 0.25 px on the real EuRoC frame, 1 px 2.4 px, 2 cells 0.33 px), at most this
+# many pixels, and the iteration's stop.
 SADDLE_WINDOW_CELLS = 1.25
 MAX_SADDLE_WINDOW_PX = 12
 SADDLE_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 0.001)
@@ -395,16 +395,25 @@ def refine_corners(image: np.ndarray, detection: TagDetection, calibration: Came
 def _saddle_corners(image: np.ndarray, detection: TagDetection, cells: int) -> TagDetection | None:
     """Corners at the saddle points where the tag's black border meets a black square
     diagonally (``cv2.cornerSubPix``, as Kalibr refines its AprilGrids), each searched
-    within ``SADDLE_WINDOW_CELLS`` cells of the detector's corner: inside the tag's two-cell
-    border and the square's three cells. On the real EuRoC frame the 35 tags' corners then
-    fit one pose of the grid at 0.25 px RMS, where OpenCV's own were 2.5 px (0.5-1.5 px
-    inside the tags, some a cell). None when a corner leaves its window (no saddle there)."""
+    within ``SADDLE_WINDOW_CELLS`` cells of the detector's corner, a cell measured along the
+    shorter of the corner's two sides: inside the tag's two-cell border and the square's
+    three cells however obliquely the tag is seen. On the real EuRoC frame the 35 tags'
+    corners then fit one pose of the grid at 0.25 px RMS, where OpenCV's own were 2.5 px
+    (0.5-1.5 px inside the tags, some a cell). None when a corner's search leaves its window (no saddle
+    within reach: the decoder's corner a cell or more off, or no square there); a corner
+    left where the decoder put it would be off by up to that much.
+    """
     sides = np.roll(detection.corners, -1, axis=0) - detection.corners
-    cell_px = float(np.mean(np.hypot(sides[:, 0], sides[:, 1]))) / cells
-    half = int(np.clip(round(SADDLE_WINDOW_CELLS * cell_px), 2, MAX_SADDLE_WINDOW_PX))
-    start = detection.corners.astype(np.float32).reshape(-1, 1, 2)
-    corners = cv2.cornerSubPix(image, start.copy(), (half, half), (-1, -1), SADDLE_CRITERIA).reshape(4, 2)
-    corners = corners.astype(np.float64)
-    if not np.all(np.isfinite(corners)) or np.hypot(*(corners - detection.corners).T).max() > half:
-        return None
+    lengths = np.hypot(sides[:, 0], sides[:, 1])  # side k runs from corner k to corner k + 1
+    # each corner's cell: along the shorter of its two sides (a tag seen obliquely)
+    cell_px = np.minimum(lengths, np.roll(lengths, 1)) / cells
+    corners = np.empty((4, 2))
+    for k in range(4):
+        half = int(np.clip(round(SADDLE_WINDOW_CELLS * cell_px[k]), 2, MAX_SADDLE_WINDOW_PX))
+        start = detection.corners[k].astype(np.float32).reshape(1, 1, 2)
+        found = cv2.cornerSubPix(image, start.copy(), (half, half), (-1, -1), SADDLE_CRITERIA)
+        # cornerSubPix puts a corner back where it started when its search leaves the window
+        if np.all(found == start) or not np.all(np.isfinite(found)):
+            return None
+        corners[k] = found.reshape(2)
     return TagDetection(detection.tag_id, corners, detection.decision_margin, detection.hamming)

@@ -34,6 +34,7 @@ BOARDS = {
     "chessboard": ("chessboard:9x6:0.025", None),
     "circles": ("circles:7x5:0.030", None),
     "acircles": ("acircles:4x11:0.020", None),
+    "aprilgrid": ("aprilgrid:6x6:0.088:0.3", None),
 }
 
 

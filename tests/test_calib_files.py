@@ -57,6 +57,9 @@ def test_board_specs_parse_to_points_in_metres():
         ("charuco:11x8:0.030:0.040:DICT_5X5_100", "smaller than the square"),
         ("charuco:20x20:0.030:0.022:DICT_5X5_100", "needs 200 markers"),
         ("circles:4x4:0.02:0.03", "touch"),
+        ("aprilgrid:6x6:0.088", "wrong number of fields"),
+        ("aprilgrid:6x6:0.088:3", "fraction of the tag size"),
+        ("aprilgrid:30x30:0.088:0.3", "2 to 587"),
     ],
 )
 def test_bad_board_specs_say_what_to_type(spec, match):
@@ -167,12 +170,17 @@ def test_corners_cache_is_reused_and_refreshed_when_an_image_changes(tmp_path):
     assert doc["images"][paths[1].name]["board"] is None
 
 
-def test_coverage_accepts_new_views_only_and_says_what_is_missing():
-    board = parse_board("charuco:11x8:0.030:0.022:DICT_5X5_100")
+COVERAGE_BOARDS = {"charuco:11x8:0.030:0.022:DICT_5X5_100": "an 11x8 ChArUco board",
+                   "aprilgrid:6x6:0.088:0.3": "a 6x6 AprilGrid"}
+
+
+@pytest.mark.parametrize("spec", sorted(COVERAGE_BOARDS))
+def test_coverage_accepts_new_views_only_and_says_what_is_missing(spec):
+    board = parse_board(spec)
     views = board_views(board, CAMERA, count=6, seed=9)
     tracker = CoverageTracker(board, CAMERA.size, min_views=5)
     nothing = tracker.offer(None)
-    assert not nothing.accepted and nothing.reason == "an 11x8 ChArUco board not in view"
+    assert not nothing.accepted and nothing.reason == f"{COVERAGE_BOARDS[spec]} not in view"
     first = detect_board(views[0].image, board)
     assert tracker.offer(first).accepted
     repeat = tracker.offer(first)
@@ -188,12 +196,13 @@ def test_coverage_accepts_new_views_only_and_says_what_is_missing():
     assert not tracker.done
 
 
-def test_coverage_finishes_once_near_far_tilted_and_corner_views_are_in():
+@pytest.mark.parametrize("spec", sorted(COVERAGE_BOARDS))
+def test_coverage_finishes_once_near_far_tilted_and_corner_views_are_in(spec):
     from calib.detect import Detection
     from fakes.board_views import random_poses
     from fakes.optics import project
 
-    board = parse_board("charuco:11x8:0.030:0.022:DICT_5X5_100")
+    board = parse_board(spec)
     points = board.object_points().astype(np.float64)
     tracker = CoverageTracker(board, CAMERA.size, min_views=15)
     offered = 0
