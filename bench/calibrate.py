@@ -5,7 +5,8 @@ known camera (the paper's field of view, principal point off centre, plumb_bob
 distortion with tangential terms), 1.5 grey levels of noise and a 0.5 px lens blur (the
 chessboard is computed exactly at each sample; the other boards are read from a texture).
 Detection and the solve are timed separately (medians); then the recovered parameters
-are set against the true ones.
+are set against the true ones. Then the same through a fisheye (``fakes.lenses``
+'fisheye_hd', 131 deg across at 1280x1024), solved with the equidistant model.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from calib.detect import detect_board
 from calib.pipeline import ImageDetection, calibrate_views, views_from_detections
 from calib.solve import SolveOptions, View, solve
 from fakes.board_views import board_views, synthetic_board_camera
+from fakes.lenses import lens_calibration
 
 TITLE = "Camera calibration: 25-view solve time and recovered-vs-true intrinsics"
 VIEWS = 25
@@ -27,10 +29,12 @@ BOARDS = (
     "chessboard:9x6:0.025",
     "circles:7x5:0.030",
     "acircles:4x11:0.020",
+    "aprilgrid:6x6:0.088:0.3",
 )
+FISHEYE_BOARDS = ("aprilgrid:6x6:0.088:0.3", "chessboard:9x6:0.025")
 
 
-def _measure(spec: str, camera) -> tuple[list[object], dict[str, float]]:
+def _measure(spec: str, camera, options: SolveOptions) -> tuple[list[object], dict[str, float]]:
     from pathlib import Path
 
     board = parse_board(spec)
@@ -44,8 +48,8 @@ def _measure(spec: str, camera) -> tuple[list[object], dict[str, float]]:
         detections.append(ImageDetection(Path(f"view_{index:02d}.png"), camera.size, found))
     usable, skipped = views_from_detections(detections, board)
     solve_views = [View(v.name, v.image_points, v.object_points) for v in usable]
-    solve_s = median_seconds(lambda: solve(solve_views, camera.size, SolveOptions()), repeats=5, warmup=1)
-    run = calibrate_views(usable, camera.size, board, skipped=skipped)
+    solve_s = median_seconds(lambda: solve(solve_views, camera.size, options), repeats=5, warmup=1)
+    run = calibrate_views(usable, camera.size, board, options, skipped=skipped)
     k, d = run.calibration.camera_matrix, run.calibration.distortion
     true_k, true_d = camera.camera_matrix, camera.distortion
     row = [
@@ -63,9 +67,11 @@ def run() -> str:
     rows = []
     values = {}
     for spec in BOARDS:
-        row, recovered = _measure(spec, camera)
+        row, recovered = _measure(spec, camera, SolveOptions())
         rows.append(row)
         values[spec.split(":")[0]] = recovered
+    fisheye = lens_calibration("fisheye_hd")
+    fisheye_rows = [_measure(spec, fisheye, SolveOptions(model="equidistant"))[0] for spec in FISHEYE_BOARDS]
     k, d = camera.camera_matrix, camera.distortion
     truth = (
         f"True camera: fx {k[0, 0]:.2f}, fy {k[1, 1]:.2f}, cx {k[0, 2]:.2f}, cy {k[1, 2]:.2f} px; "
@@ -87,7 +93,11 @@ def run() -> str:
         + markdown_table(["board", "fx", "fy", "cx", "cy", "k1", "k2"], recovered_rows)
         + f"\n{VIEWS} views per board rendered by `fakes.board_views` (seed 1, 2x supersampling, "
         "noise 1.5 grey levels, lens blur 0.5 px; the chessboard computed exactly at each sample, the "
-        "other boards read from a 60-texel-per-square texture). Chessboard corners: cornerSubPix, then "
-        "a fit of a blurred X-junction to the pixels. Solve: `cv2.calibrateCameraExtended`, plumb_bob, "
-        "with outlier-view rejection (median of 5 runs); detection: median per image.\n"
+        "other boards read from a texture of 60 texels a square, 20 an AprilGrid cell). Chessboard "
+        "corners: cornerSubPix, then a fit of a blurred X-junction to the pixels. Solve: `cv2.calibrateCameraExtended`, plumb_bob, "
+        "with outlier-view rejection (median of 5 runs); detection: median per image.\n\n"
+        f"Through a fisheye (`fakes.lenses` fisheye_hd: 1280x1024, fx {fisheye.fx:.0f} px, 131 deg across, "
+        f"equidistant k1..k4 {', '.join(f'{v:+.4f}' for v in fisheye.distortion)}), `--model fisheye` "
+        "(`cv2.fisheye.calibrate`; k1, k2 errors of the equidistant coefficients):\n\n"
+        + markdown_table(headers, fisheye_rows)
     )

@@ -186,9 +186,66 @@ def real_frames() -> str:
     return f"{table}\n\n{fit_table}"
 
 
+# TUM-VI cam0's published calibration (equidistant, at 512 x 512; its 1024 x 1024 frames
+# are the same sensor unbinned, so f doubles and c goes to 2 c + 0.5)
+TUM_VI_512 = {"fx": 190.97847715128717, "fy": 190.9733070521226, "cx": 254.93170605935475, "cy": 256.8974428996504}
+TUM_VI_FRAMES = ("TUM_VI.png", "r45.png", "right.png", "top.png", "top_right.png")
+
+
+def fisheye_frames() -> str:
+    """The five TUM-VI frames: a fisheye model fitted to each corner set alone (cubeloc's
+    saddle corners; OpenCV's aruco corners, refined by CORNER_REFINE_SUBPIX), the rows'
+    straightness under it, and the fit against TUM-VI's published calibration."""
+    import cv2
+
+    from calib.boards import parse_board
+    from calib.camera_info import CameraCalibration
+    from calib.detect import detect_board
+    from calib.solve import SolveOptions, View, solve
+    from drivers.sequence import read_image
+
+    if not REAL.is_dir():
+        return f"_{REAL} not found: no fisheye frames measured._"
+    board = parse_board("aprilgrid:6x6:0.088:0.3")
+    points = board.object_points()
+    parameters = cv2.aruco.DetectorParameters()
+    parameters.markerBorderBits = 2
+    parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    opencv = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), parameters)
+    ours, theirs = "cubeloc (saddle points)", "OpenCV aruco, CORNER_REFINE_SUBPIX"
+    sets: dict[str, list[dict[int, np.ndarray]]] = {ours: [], theirs: []}
+    for name in TUM_VI_FRAMES:
+        image = read_image(REAL / name)
+        found = detect_board(image, board)  # tag t's corners are points 4 t .. 4 t + 3
+        tags = found.ids // 4
+        sets[ours].append({int(t): found.image_points[tags == t].astype(np.float64) for t in np.unique(tags)})
+        corners, ids, _ = opencv.detectMarkers(image)
+        sets[theirs].append(
+            {int(i): c.reshape(4, 2).astype(np.float64) for c, i in zip(corners, ids.ravel(), strict=True)})
+    published = (2 * TUM_VI_512["fx"], 2 * TUM_VI_512["fy"], 2 * TUM_VI_512["cx"] + 0.5, 2 * TUM_VI_512["cy"] + 0.5)
+    rows = []
+    for label, frames in sets.items():
+        views = [View(f"{i}", np.concatenate([f[t] for t in sorted(f)]).astype(np.float32),
+                      np.concatenate([points[4 * t: 4 * t + 4] for t in sorted(f)])) for i, f in enumerate(frames)]
+        solution = solve(views, (1024, 1024), SolveOptions(model="equidistant"))
+        k = solution.camera_matrix
+        model = CameraCalibration(1024, 1024, k, solution.distortion, "equidistant")
+        lines = np.sqrt(np.mean([_row_lines_rms(f, board.cols, model) ** 2 for f in frames]))
+        rows.append([label, str(sum(len(f) for f in frames)), f"{solution.rms_px:.3f}", f"{lines:.3f}",
+                     f"{k[0, 0]:.2f} ({100 * (k[0, 0] / published[0] - 1):+.2f} %)",
+                     f"{k[0, 2]:.2f}, {k[1, 2]:.2f} ({k[0, 2] - published[2]:+.2f}, {k[1, 2] - published[3]:+.2f})"])
+    table = markdown_table(["corners (the five TUM-VI frames, 1024x1024)", "tags", "fisheye fit: RMS px",
+                            "rows' corners off their lines: RMS px", "fx (against TUM-VI cam0)",
+                            "cx, cy (against TUM-VI cam0)"], rows)
+    return (f"{table}\n\nEach corner set fits its own equidistant model (`calib.solve`, as `cubeloc calibrate "
+            f"--model fisheye` does); TUM-VI cam0 published: fx {published[0]:.2f}, cx {published[2]:.2f}, "
+            f"cy {published[3]:.2f} px at 1024x1024 (its 512x512 calibration, doubled). Line distances are in "
+            "undistorted pixels (f tan theta), which stretch towards the edge of a fisheye's view.")
+
+
 def run() -> str:
     views = int(os.environ.get("CUBELOC_BENCH_PLANAR_VIEWS", "40"))
     jobs = int(os.environ.get("CUBELOC_BENCH_PLANAR_JOBS", "2"))
     return (f"Board renders, {views} seeded views a case (errors in mm of the camera position, "
             f"median / 90th percentile / max, on the views both posed):\n\n{renders(views, jobs)}\n\n"
-            f"The real AprilGrid frames:\n\n{real_frames()}")
+            f"The real AprilGrid frames:\n\n{real_frames()}\n\nThe fisheye frames:\n\n{fisheye_frames()}")

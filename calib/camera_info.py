@@ -20,7 +20,9 @@ import yaml
 from cubeloc.atomic import atomic_write_text
 from cubeloc.errors import InputFileError
 
-DISTORTION_LENGTHS = {"plumb_bob": 5, "rational_polynomial": 8}
+# ROS' distortion models: OpenCV's pinhole (k1 k2 p1 p2 k3; k1..k6 with p1 p2), and
+# ``equidistant``, the fisheye (Kannala-Brandt) model of cv2.fisheye (k1 k2 k3 k4)
+DISTORTION_LENGTHS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
 # Sanity bounds on a file's numbers: beyond these the file is junk or a unit mistake, and
 # the projection arithmetic downstream overflows or means nothing.
 MAX_FOCAL_PER_PIXEL = 100.0  # fx, fy at most 100 x the larger image side (a ~0.6 deg field)
@@ -32,13 +34,15 @@ class CameraCalibration:
     """Intrinsics and distortion of one camera, in OpenCV conventions.
 
     ``camera_matrix`` is the 3x3 K; ``distortion`` the OpenCV coefficient vector
-    (k1 k2 p1 p2 k3 for ``plumb_bob``; k1 k2 p1 p2 k3 k4 k5 k6 for ``rational_polynomial``).
+    (k1 k2 p1 p2 k3 for ``plumb_bob``; k1 k2 p1 p2 k3 k4 k5 k6 for ``rational_polynomial``;
+    k1 k2 k3 k4 of ``cv2.fisheye`` for ``equidistant``, where a ray at angle theta from the
+    axis lands theta (1 + k1 theta^2 + ... + k4 theta^8) focal lengths from the centre).
     """
 
     width: int
     height: int
     camera_matrix: np.ndarray  # (3, 3) float64
-    distortion: np.ndarray  # (5,) or (8,) float64
+    distortion: np.ndarray  # (5,), (8,) or (4,) float64
     distortion_model: str = "plumb_bob"
     camera_name: str = "camera"
     metadata: dict[str, Any] = field(default_factory=dict)  # the ``calibration:`` block
@@ -66,6 +70,11 @@ class CameraCalibration:
     @property
     def cy(self) -> float:
         return float(self.camera_matrix[1, 2])
+
+    @property
+    def is_fisheye(self) -> bool:
+        """The equidistant (fisheye) model: OpenCV's pinhole functions do not apply."""
+        return self.distortion_model == "equidistant"
 
     @property
     def size(self) -> tuple[int, int]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.solve import Solution
+from calib.solve import Solution, parameter_names
 
 # thresholds of the verdict; "good" must pass all of them
 GOOD_RMS_PX, POOR_RMS_PX = 0.5, 1.0
@@ -68,7 +68,7 @@ def format_report(solution: Solution, verdict: Verdict, skipped: list[tuple[str,
         f"cx {k[0, 2]:.2f} +/- {std.get('cx', 0):.2f}   cy {k[1, 2]:.2f} +/- {std.get('cy', 0):.2f}",
         "distortion " + "  ".join(
             f"{name} {value:+.5f} +/- {std.get(name, 0):.5f}"
-            for name, value in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), d, strict=False)
+            for name, value in zip(parameter_names(solution.model)[4:], d, strict=False)
         ),
         "per-view RMS px: " + ", ".join(f"{v.name} {v.rms_px:.2f}" for v in solution.views),
     ]

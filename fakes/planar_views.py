@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
+from fakes.optics import project
 from fakes.render import render_view
 from fakes.room import Room
 from positioning.geometry import Transform, look_at
@@ -52,8 +52,7 @@ def view_of_board(board: Target, calibration: CameraCalibration, rng: np.random.
         in_camera = pose.inverse().apply(points)
         if np.any(in_camera[:, 2] < 0.1):
             continue
-        pixels = cv2.projectPoints(in_camera, np.zeros(3), np.zeros(3), calibration.camera_matrix,
-                                   calibration.distortion)[0].reshape(-1, 2)
+        pixels = project(in_camera, calibration)
         if (pixels.min() > BORDER_PX and pixels[:, 0].max() < calibration.width - BORDER_PX
                 and pixels[:, 1].max() < calibration.height - BORDER_PX):
             return pose

@@ -58,8 +58,8 @@ class PixelBox:
 
 @functools.lru_cache(maxsize=4)
 def _padded_grid_cached(key: tuple) -> np.ndarray:
-    width, height, k_bytes, d_bytes = key
-    calibration = CameraCalibration(width, height, np.frombuffer(k_bytes).reshape(3, 3), np.frombuffer(d_bytes))
+    width, height, k_bytes, d_bytes, model = key
+    calibration = CameraCalibration(width, height, np.frombuffer(k_bytes).reshape(3, 3), np.frombuffer(d_bytes), model)
     grid = ray_grid(calibration, 1)
     padded = np.empty((grid.shape[0] + 2, grid.shape[1] + 2, 2), np.float64)
     padded[1:-1, 1:-1] = grid
@@ -76,7 +76,7 @@ def padded_grid(calibration: CameraCalibration) -> np.ndarray:
     """(H+2, W+2, 2) float32 ray grid with one pixel of linear extrapolation all round
     (cached per calibration), so sub-pixel samples of border pixels interpolate too."""
     key = (calibration.width, calibration.height, calibration.camera_matrix.tobytes(),
-           calibration.distortion.tobytes())
+           calibration.distortion.tobytes(), calibration.distortion_model)
     return _padded_grid_cached(key)
 
 

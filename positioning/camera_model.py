@@ -1,9 +1,11 @@
-"""The camera model of positioning/: OpenCV's pinhole with its distortion, in one place.
+"""The camera model of positioning/: OpenCV's pinhole with its distortion, or OpenCV's
+fisheye (``equidistant``), in one place.
 
-Everything in positioning/ that projects, projects with a Jacobian or undistorts comes
-here, so one convention (OpenCV pixels, distortion applied to the model as
-``cv2.projectPoints`` does) and one undistortion (the same iterations everywhere) hold
-throughout. fakes/ keeps its own, independent optics on purpose: it is the ground truth.
+Everything in positioning/ that projects, projects with a Jacobian, undistorts or hands
+pixels to an OpenCV PnP solver comes here, so one convention (OpenCV pixels, distortion
+applied to the model as ``cv2.projectPoints`` or ``cv2.fisheye.projectPoints`` does) and
+one undistortion (the same iterations everywhere) hold throughout. fakes/ keeps its own,
+independent optics on purpose: it is the ground truth.
 
 * ``project(points_camera)``: pixels of camera-frame points;
 * ``project_pose(points_world, rvec, tvec)``: pixels of world points at a solver pose
@@ -11,8 +13,11 @@ throughout. fakes/ keeps its own, independent optics on purpose: it is the groun
 * ``project_with_jacobian(points_camera)``: pixels and d(pixel)/d(point), up to 8
   coefficients (plumb_bob, rational_polynomial);
 * ``undistort(pixels)``: normalised coordinates of the rays; ``distort(normalised)``
-  back to pixels;
-* ``project_normalised(T_camera_world, points_world)``: normalised projections and depths.
+  back to pixels; ``outline_pixels(normalised)`` for a coarse outline, finite anywhere;
+* ``project_normalised(T_camera_world, points_world)``: normalised projections and depths;
+* ``solver_pixels(pixels, calibration)``: pixels, camera matrix and distortion to give
+  OpenCV's PnP solvers, which know the pinhole models only (a fisheye's pixels go as the
+  pixels of a pinhole camera with the same camera matrix).
 """
 
 from __future__ import annotations
@@ -37,7 +42,11 @@ def project(points_camera: np.ndarray, calibration: CameraCalibration) -> np.nda
     points = np.asarray(points_camera, np.float64).reshape(-1, 3)
     if len(points) == 0:
         return np.zeros((0, 2))
-    pixels, _ = cv2.projectPoints(points, _ZERO, _ZERO, calibration.camera_matrix, calibration.distortion)
+    if calibration.is_fisheye:
+        pixels, _ = cv2.fisheye.projectPoints(points.reshape(-1, 1, 3), _ZERO, _ZERO, calibration.camera_matrix,
+                                              calibration.distortion, alpha=_fisheye_alpha(calibration))
+    else:
+        pixels, _ = cv2.projectPoints(points, _ZERO, _ZERO, calibration.camera_matrix, calibration.distortion)
     return pixels.reshape(-1, 2)
 
 
@@ -45,10 +54,16 @@ def project_pose(points_world: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, c
                  jacobian: bool = False):
     """Pixels (N, 2) of world points seen from the solver pose (rvec, tvec) =
     T_camera_world; with ``jacobian``, also d(pixel)/d(rvec, tvec) as (2N, 6)."""
-    pixels, j = cv2.projectPoints(np.asarray(points_world, np.float64).reshape(-1, 3),
-                                  np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3),
-                                  calibration.camera_matrix, calibration.distortion)
-    return (pixels.reshape(-1, 2), j[:, :6]) if jacobian else pixels.reshape(-1, 2)
+    points = np.asarray(points_world, np.float64).reshape(-1, 3)
+    rvec, tvec = np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
+    if calibration.is_fisheye:  # its Jacobian's columns: f (2), c (2), k (4), rvec, tvec, skew
+        pixels, j = cv2.fisheye.projectPoints(points.reshape(-1, 1, 3), rvec, tvec, calibration.camera_matrix,
+                                              calibration.distortion, alpha=_fisheye_alpha(calibration))
+        j = j[:, 8:14]
+    else:
+        pixels, j = cv2.projectPoints(points, rvec, tvec, calibration.camera_matrix, calibration.distortion)
+        j = j[:, :6]
+    return (pixels.reshape(-1, 2), j) if jacobian else pixels.reshape(-1, 2)
 
 
 def undistort(pixels: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
@@ -57,7 +72,12 @@ def undistort(pixels: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
     if len(pixels) == 0:
         return np.zeros((0, 2))
     src = pixels.reshape(-1, 1, 2)
-    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4: the criteria have their own function
+    if calibration.is_fisheye:  # cv2.fisheye reads no skew from K: it is taken out first
+        k = calibration.camera_matrix
+        src = (pixels - np.outer((pixels[:, 1] - k[1, 2]) / k[1, 1], [k[0, 1], 0.0])).reshape(-1, 1, 2)
+        out = cv2.fisheye.undistortPoints(src, k, calibration.distortion, None, _IDENTITY, _IDENTITY,
+                                          UNDISTORT_CRITERIA)
+    elif hasattr(cv2, "undistortPointsIter"):  # OpenCV 4: the criteria have their own function
         out = cv2.undistortPointsIter(src, calibration.camera_matrix, calibration.distortion,
                                       _IDENTITY, _IDENTITY, UNDISTORT_CRITERIA)
     else:  # OpenCV 5 folded them into undistortPoints
@@ -66,10 +86,40 @@ def undistort(pixels: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
     return out.reshape(-1, 2)
 
 
+def outline_pixels(normalised: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
+    """Pixels (N, 2) of normalised points for a coarse outline (a mask with a margin),
+    finite wherever the points are: a fisheye's own projection, monotonic at any angle;
+    the undistorted pinhole for the polynomial models, whose distortion folds points far
+    outside the view back into it (inside the view a margin covers the difference)."""
+    normalised = np.asarray(normalised, np.float64).reshape(-1, 2)
+    if calibration.is_fisheye:
+        return distort(normalised, calibration)
+    k = calibration.camera_matrix
+    return normalised @ k[:2, :2].T + k[:2, 2]
+
+
+def _fisheye_alpha(calibration: CameraCalibration) -> float:
+    """cv2.fisheye's skew: an argument of its own (K's skew is not read), as K[0, 1] / fx."""
+    return float(calibration.camera_matrix[0, 1] / calibration.camera_matrix[0, 0])
+
+
 def distort(normalised: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
     """Pixels (N, 2) of normalised ray coordinates (N, 2): the inverse of ``undistort``."""
     normalised = np.asarray(normalised, np.float64).reshape(-1, 2)
     return project(np.column_stack([normalised, np.ones(len(normalised))]), calibration)
+
+
+def solver_pixels(pixels: np.ndarray, calibration: CameraCalibration
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(pixels, camera matrix, distortion) for OpenCV's PnP solvers (``solvePnP*``): the
+    pixels and the calibration as they are for the pinhole models; for a fisheye, where the
+    pixels would land in a pinhole camera with the same camera matrix, and no distortion
+    (pixel-sized residuals near the centre, larger towards the edge)."""
+    pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
+    if not calibration.is_fisheye:
+        return pixels, calibration.camera_matrix, calibration.distortion
+    rays = np.column_stack([undistort(pixels, calibration), np.ones(len(pixels))])
+    return np.ascontiguousarray((rays @ calibration.camera_matrix.T)[:, :2]), calibration.camera_matrix, None
 
 
 def project_normalised(T_camera_world: Transform, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -117,11 +167,57 @@ def _project_with_jacobian(points, camera_matrix, d):
     return pixels, jacobian
 
 
+def _project_equidistant_with_jacobian(points, camera_matrix, d):
+    """The compiled loop under ``project_with_jacobian`` for the fisheye: cv2.fisheye's
+    model (theta = atan2(rho, z), rho the distance from the axis), its Jacobian in closed
+    form; on the axis, the pinhole's."""
+    k1, k2, k3, k4 = d[0], d[1], d[2], d[3]
+    fx, skew, cx = camera_matrix[0, 0], camera_matrix[0, 1], camera_matrix[0, 2]
+    fy, cy = camera_matrix[1, 1], camera_matrix[1, 2]
+    count = points.shape[0]
+    pixels = np.empty((count, 2))
+    jacobian = np.empty((count, 2, 3))
+    for i in range(count):
+        X, Y, Z = points[i, 0], points[i, 1], points[i, 2]
+        rho2 = X * X + Y * Y
+        rho = np.sqrt(rho2)
+        if rho < 1e-12 * abs(Z):
+            inv_z = 1.0 / Z
+            xd, yd = X * inv_z, Y * inv_z
+            a00, a01, a02 = inv_z, 0.0, -xd * inv_z
+            a10, a11, a12 = 0.0, inv_z, -yd * inv_z
+        else:
+            theta = np.arctan2(rho, Z)
+            t2 = theta * theta
+            theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+            slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))  # d(theta_d)/d(theta)
+            ux, uy = X / rho, Y / rho
+            xd, yd = theta_d * ux, theta_d * uy
+            # d(theta)/d(X, Y, Z) and d(X / rho, Y / rho)/d(X, Y)
+            denominator = rho2 + Z * Z
+            g = slope * Z / (rho * denominator)  # d(theta_d)/dX = g X, /dY = g Y
+            gz = -slope * rho / denominator
+            h = theta_d / (rho * rho2)
+            a00, a01, a02 = g * X * ux + h * Y * Y, g * Y * ux - h * X * Y, gz * ux
+            a10, a11, a12 = g * X * uy - h * X * Y, g * Y * uy + h * X * X, gz * uy
+        jacobian[i, 0, 0], jacobian[i, 0, 1] = fx * a00 + skew * a10, fx * a01 + skew * a11
+        jacobian[i, 0, 2] = fx * a02 + skew * a12
+        jacobian[i, 1, 0], jacobian[i, 1, 1], jacobian[i, 1, 2] = fy * a10, fy * a11, fy * a12
+        pixels[i, 0] = fx * xd + skew * yd + cx
+        pixels[i, 1] = fy * yd + cy
+    return pixels, jacobian
+
+
 def _warm_up() -> None:
     project_with_jacobian(np.ones((1, 3)), CameraCalibration(16, 16, np.eye(3), np.zeros(5)))
 
 
+def _warm_up_equidistant() -> None:
+    project_with_jacobian(np.ones((1, 3)), CameraCalibration(16, 16, np.eye(3), np.zeros(4), "equidistant"))
+
+
 _compiled_projection = compiled(_project_with_jacobian, _warm_up)  # see positioning/jit.py
+_compiled_equidistant = compiled(_project_equidistant_with_jacobian, _warm_up_equidistant)
 
 
 def project_with_jacobian(points_camera: np.ndarray, calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
@@ -130,7 +226,12 @@ def project_with_jacobian(points_camera: np.ndarray, calibration: CameraCalibrat
     The model of ``project`` with up to 8 coefficients, the distortion's 2x2 Jacobian in
     closed form; compiled (``positioning/jit.py``): 648 points in ~0.02 ms, where the
     same formulas as numpy array operations took ~0.1 ms. The points must be in front of
-    the camera (z > 0: compiled, a division by zero raises ZeroDivisionError)."""
+    the camera (z > 0: compiled, a division by zero raises ZeroDivisionError). A fisheye
+    (``equidistant``) has its own loop, where z > 0 is not needed."""
+    if calibration.is_fisheye:
+        return _compiled_equidistant()(read_only(np.reshape(points_camera, (-1, 3)), np.float64),
+                                       read_only(calibration.camera_matrix, np.float64),
+                                       read_only(np.asarray(calibration.distortion, np.float64).ravel()))
     d = np.zeros(8)
     coefficients = np.asarray(calibration.distortion, np.float64).ravel()
     if len(coefficients) > 8 and np.any(coefficients[8:] != 0):

@@ -2,8 +2,9 @@
 positioning/ shares (``target_pose``'s corners, ``edge_alignment``'s edges, ``tag_scale``).
 
 ``TargetPose`` is the result record; ``refine_lm`` OpenCV's Levenberg-Marquardt on the
-pixel residuals; ``covariance_from_jacobian`` carries a measurement Jacobian with respect
-to the solver's (rvec, tvec) to the 6x6 covariance of T_world_camera in ROS order.
+pixel residuals (finished by Gauss-Newton on a fisheye's own pixels);
+``covariance_from_jacobian`` carries a measurement Jacobian with respect to the solver's
+(rvec, tvec) to the 6x6 covariance of T_world_camera in ROS order.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import project_pose
+from positioning.camera_model import project_pose, solver_pixels
 from positioning.geometry import Transform
 
 # Floor on the corner noise used for the covariance, so a perfect fit still has one.
@@ -38,16 +39,45 @@ class TargetPose:
 
 
 def refine_lm(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-            calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
+              calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
     # Column vectors: given (3,) arrays, OpenCV's binding refines a converted copy and
     # returns the start unchanged (and spends 20x longer doing it).
+    solver_px, camera_matrix, distortion = solver_pixels(pixels, calibration)
     rvec, tvec = cv2.solvePnPRefineLM(
-        points_world, pixels, calibration.camera_matrix, calibration.distortion,
+        points_world, solver_px, camera_matrix, distortion,
         np.asarray(rvec, np.float64).reshape(3, 1).copy(), np.asarray(tvec, np.float64).reshape(3, 1).copy(),
         criteria,
     )
-    return rvec.reshape(3), tvec.reshape(3)
+    rvec, tvec = rvec.reshape(3), tvec.reshape(3)
+    if calibration.is_fisheye:  # OpenCV's LM knows no fisheye: finish on the fisheye's own pixels
+        rvec, tvec = _gauss_newton(points_world, np.asarray(pixels, np.float64).reshape(-1, 2), rvec, tvec,
+                                   calibration)
+    return rvec, tvec
+
+
+def _gauss_newton(points_world: np.ndarray, pixels: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+                  calibration: CameraCalibration, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on the pixel residuals through ``project_pose`` (any camera model),
+    from a start already near the minimum; a step that does not lower the error ends it."""
+    x = np.concatenate([rvec, tvec])
+
+    def residuals(params: np.ndarray, jacobian: bool = False):
+        return project_pose(points_world, params[:3], params[3:], calibration, jacobian=jacobian)
+
+    predicted, jac = residuals(x, jacobian=True)
+    error = float(np.sum((pixels - predicted) ** 2))
+    for _ in range(iterations):
+        step = np.linalg.lstsq(jac, (pixels - predicted).ravel(), rcond=None)[0]
+        candidate = x + step
+        predicted_new, jac_new = residuals(candidate, jacobian=True)
+        new_error = float(np.sum((pixels - predicted_new) ** 2))
+        if not np.isfinite(new_error) or new_error >= error:
+            break
+        x, predicted, jac, error = candidate, predicted_new, jac_new, new_error
+        if np.abs(step).max() < 1e-12:
+            break
+    return x[:3].copy(), x[3:].copy()
 
 
 def _world_camera_vector(rvec: np.ndarray, tvec: np.ndarray, reference_rotation: np.ndarray) -> np.ndarray:

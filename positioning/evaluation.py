@@ -295,12 +295,17 @@ def corners_sqpnp_pose(points_world: np.ndarray, pixels: np.ndarray, calibration
 
     if len(points_world) < 4:
         return None
-    ok, rvec, tvec = cv2.solvePnP(points_world, pixels, calibration.camera_matrix, calibration.distortion,
-                                  flags=cv2.SOLVEPNP_SQPNP)
+    from positioning.camera_model import solver_pixels
+    from positioning.corner_pose import refine_lm
+
+    solver = solver_pixels(pixels, calibration)
+    ok, rvec, tvec = cv2.solvePnP(points_world, *solver, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         return None
-    rvec, tvec = cv2.solvePnPRefineLM(points_world, pixels, calibration.camera_matrix, calibration.distortion,
-                                      rvec, tvec)
+    if calibration.is_fisheye:  # LM on the fisheye's own pixels
+        rvec, tvec = refine_lm(points_world, pixels, rvec.ravel(), tvec.ravel(), calibration)
+    else:  # OpenCV's LM as it comes
+        rvec, tvec = cv2.solvePnPRefineLM(points_world, *solver, rvec, tvec)
     return Transform.from_rvec_tvec(rvec.ravel(), tvec.ravel()).inverse()
 
 

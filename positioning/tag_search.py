@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import project
+from positioning.camera_model import project, undistort
 from positioning.detection import cells_across, library_decimate
 from positioning.geometry import Transform
 from positioning.target import Target
@@ -81,6 +81,15 @@ class TagRegion:
     size_px: float = 0.0  # the tag's predicted size (longest side of its pixel box)
 
 
+def _field_of_view(calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and largest normalised (x, y) of the rays through the image's border
+    (its corners and the middles of its sides)."""
+    w, h = calibration.width - 1, calibration.height - 1
+    border = np.array([[0, 0], [w / 2, 0], [w, 0], [w, h / 2], [w, h], [w / 2, h], [0, h], [0, h / 2]], np.float64)
+    rays = undistort(border, calibration)
+    return rays.min(axis=0), rays.max(axis=0)
+
+
 def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
                           growth: float = REGION_GROWTH, margin_px: int = REGION_MARGIN_PX) -> list[TagRegion]:
     """Where each tag facing the camera at ``T_world_camera`` should appear, one pixel box
@@ -89,10 +98,9 @@ def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_worl
     cos_limit = np.cos(np.radians(MAX_PREDICTED_ANGLE_DEG))
     # Far outside the field of view the distortion polynomial folds points back into the
     # image (measured: a cube 60+ degrees off-axis gave a whole-image box, 18 ms of search
-    # per frame for nothing). Keep to a field of view half as wide again as the image's.
-    k = calibration.camera_matrix
-    low_n = -k[:2, 2] / np.diag(k)[:2]
-    high_n = (np.array([calibration.width, calibration.height]) - 1 - k[:2, 2]) / np.diag(k)[:2]
+    # per frame for nothing). Keep to a field of view half as wide again as the image's
+    # (its border's rays: a fisheye's reach far beyond what its focal length alone says).
+    low_n, high_n = _field_of_view(calibration)
     spread = 0.25 * (high_n - low_n)
     tags = target.tags
     centres = np.array([tag.center for tag in tags])

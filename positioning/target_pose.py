@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import project_pose
+from positioning.camera_model import project_pose, solver_pixels
 from positioning.corner_pose import (
     TargetPose,
     corners_covariance,
@@ -118,9 +118,8 @@ def unique_target_detections(detections: list[TagDetection], target: Target) -> 
 def _one_face(points_world: np.ndarray, pixels: np.ndarray, calibration: CameraCalibration,
               previous: Transform) -> tuple[np.ndarray, np.ndarray] | None:
     """The IPPE solution of a single plane nearest the previous pose (there are two)."""
-    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-        points_world, pixels, calibration.camera_matrix, calibration.distortion, flags=cv2.SOLVEPNP_IPPE
-    )
+    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(points_world, *solver_pixels(pixels, calibration),
+                                                 flags=cv2.SOLVEPNP_IPPE)
     if count == 0:
         return None
 
@@ -136,8 +135,8 @@ def plane_solutions(points_world: np.ndarray, pixels: np.ndarray,
                     calibration: CameraCalibration) -> list[tuple[float, np.ndarray, np.ndarray]]:
     """IPPE's (up to two) poses of coplanar points, each refined by LM: (RMS px, rvec,
     tvec), best first."""
-    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-        points_world, pixels, calibration.camera_matrix, calibration.distortion, flags=cv2.SOLVEPNP_IPPE)
+    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(points_world, *solver_pixels(pixels, calibration),
+                                                 flags=cv2.SOLVEPNP_IPPE)
     out = []
     for k in range(count):
         rvec, tvec = refine_lm(points_world, pixels, np.asarray(rvecs[k], np.float64).reshape(3),
@@ -305,10 +304,8 @@ def single_plane_candidates(detections: list[TagDetection], target: Target,
         return []
     tag_ids = tuple(d.tag_id for d in ours)
     pixels = np.concatenate([d.corners for d in ours]).astype(np.float64)
-    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-        target.corners_of(tag_ids), pixels, calibration.camera_matrix, calibration.distortion,
-        flags=cv2.SOLVEPNP_IPPE,
-    )
+    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(target.corners_of(tag_ids), *solver_pixels(pixels, calibration),
+                                                 flags=cv2.SOLVEPNP_IPPE)
     return [Transform.from_rvec_tvec(rvecs[k], tvecs[k]).inverse() for k in range(count)]
 
 
@@ -396,9 +393,7 @@ def _solve(ours: list[TagDetection], target: Target, calibration: CameraCalibrat
     else:
         if planes == 2 and not options.allow_two_faces:
             return PoseOutcome(None, Refusal.TWO_FACES, "two faces in view and two-face poses are disabled")
-        ok, rvec, tvec = cv2.solvePnP(
-            points_world, pixels, calibration.camera_matrix, calibration.distortion, flags=cv2.SOLVEPNP_EPNP
-        )
+        ok, rvec, tvec = cv2.solvePnP(points_world, *solver_pixels(pixels, calibration), flags=cv2.SOLVEPNP_EPNP)
         if not ok or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
             return PoseOutcome(None, Refusal.SOLVER, "EPnP found no pose")
         rvec, tvec = refine_lm(points_world, pixels, rvec.reshape(3), tvec.reshape(3), calibration)

@@ -45,6 +45,9 @@ board specs (lengths in metres; or a YAML file with kind, cols, rows, size, ...)
   circles:7x5:0.030[:DIAMETER]            circle grid, counts circles, 30 mm apart
   acircles:4x11:0.020[:DIAMETER]          OpenCV's asymmetric grid: 4 circles per row,
                                           11 rows 20 mm apart (40 mm within a row)
+  aprilgrid:6x6:0.088:0.3                 Kalibr AprilGrid, counts TAGS: 6 x 6 tag36h11
+                                          of 88 mm, gaps of 0.3 x 88 mm with black squares
+  kalibr:april_6x6.yaml                   a Kalibr target file (aprilgrid or checkerboard)
 Print a board with `cubeloc generate board --board SPEC --out board.pdf` and measure it.
 
 examples:
@@ -72,8 +75,10 @@ def register(subparsers) -> None:
     parser.add_argument("--board", default=DEFAULT_BOARD, metavar="SPEC", help=BOARD_HELP + f" (default {DEFAULT_BOARD})")
     parser.add_argument("--out", required=True, metavar="FILE", help="camera_info YAML to write")
     parser.add_argument("--force", action="store_true", help="replace an existing output")
-    parser.add_argument("--model", choices=("plumb_bob", "rational_polynomial"), default="plumb_bob",
-                        help="distortion model (default plumb_bob: k1 k2 p1 p2 k3)")
+    parser.add_argument("--model", choices=("plumb_bob", "rational_polynomial", "fisheye", "equidistant"),
+                        default="plumb_bob",
+                        help="distortion model (default plumb_bob: k1 k2 p1 p2 k3); fisheye (or equidistant, "
+                             "its camera_info name) for fisheye and very wide lenses: Kannala-Brandt k1..k4")
     parser.add_argument("--fix-principal-point", action="store_true", help="keep the principal point at the image centre")
     parser.add_argument("--fix-aspect-ratio", action="store_true", help="solve one focal length (fx = fy)")
     parser.add_argument("--camera-name", default="camera", help="camera_name in the output (default 'camera')")
@@ -128,7 +133,8 @@ def run(args) -> int:
 
     board = parse_board(args.board)
     out, views_dir, report_png = _outputs(args.out, args.force, live=args.camera is not None)
-    options = SolveOptions(model=args.model, fix_principal_point=args.fix_principal_point, fix_aspect_ratio=args.fix_aspect_ratio)
+    model = "equidistant" if args.model == "fisheye" else args.model
+    options = SolveOptions(model=model, fix_principal_point=args.fix_principal_point, fix_aspect_ratio=args.fix_aspect_ratio)
     if args.images:
         if args.foxglove:
             raise InputFileError("--foxglove shows a live calibration: use it with --camera, not --images")

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import project_normalised
+from positioning.camera_model import outline_pixels, project_normalised
 from positioning.detection import DetectorOptions
 from positioning.estimator import FeatureState, FrameResult, FrameView, PoseEstimate, PoseState
 from positioning.geometry import Transform
@@ -148,8 +148,7 @@ class TrackingProcessor:
         xn, z = project_normalised(pose.inverse(), self._target_corners)
         if np.any(z <= 0):
             return None
-        k = self.calibration.camera_matrix
-        return xn @ k[:2, :2].T + k[:2, 2]  # the outline needs no distortion: it has a margin
+        return outline_pixels(xn, self.calibration)
 
     # ------------------------------------------------------------------ frames
     def process(self, image: np.ndarray, stamp_ns: int, seq: int) -> FrameResult:
