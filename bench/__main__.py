@@ -10,7 +10,7 @@ from bench.common import update_section
 
 # Module names under bench/, in the order they appear in docs/benchmarks.md.
 BENCHMARKS: tuple[str, ...] = ("grab", "render", "pose", "range", "e2e", "calibrate", "tracker", "scenarios", "odometry",
-                               "foxglove", "boot", "seeds", "intrinsics", "turns", "family", "planar")
+                               "foxglove", "boot", "seeds", "intrinsics", "turns", "family", "planar", "boards")
 
 
 def main(argv: list[str]) -> int:

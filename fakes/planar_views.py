@@ -1,7 +1,7 @@
 """Seeded views of a planar target (a board of tags) for pose tests and ``bench planar``: the
 camera 0.5-3 m from the board's centre, 0-60 deg off its normal, rolled at random, the
-whole board in view, rendered blurred in a textured room; and a calibration off as a real
-one is."""
+whole board in view, rendered blurred in a textured room; a calibration off as a real one
+is; and a board stood up in a room (``standing_board``), for the tracker's scenarios."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from fakes.optics import project
 from fakes.render import render_view
 from fakes.room import Room
 from positioning.geometry import Transform, look_at
-from positioning.target import Target
+from positioning.target import Tag, Target
 
 BORDER_PX = 10.0  # every corner of the board at least this far inside the image
 ROOM = Room(x_range=(-7.0, 7.0), y_range=(-7.0, 7.0), z_range=(-0.09, 5.0))  # the board at z = 0 faces up
@@ -69,3 +69,16 @@ def miscalibrated(calibration: CameraCalibration, rng: np.random.Generator) -> C
     k[:2, 2] += rng.normal(0.0, 0.5, 2)
     d[0] += rng.normal(0.0, 0.005)
     return dataclasses.replace(calibration, camera_matrix=k, distortion=d)
+
+
+def standing_board(board: Target, centre: np.ndarray, facing: np.ndarray) -> Target:
+    """``board`` (``make_board``'s: tags in z = 0 facing +z, its rows going down -y) stood
+    upright with its centre at ``centre``, facing the horizontal direction ``facing``, its
+    rows level."""
+    facing = np.array([facing[0], facing[1], 0.0], np.float64)
+    facing /= np.linalg.norm(facing)
+    up = np.array([0.0, 0.0, 1.0])
+    rotation = np.column_stack([np.cross(up, facing), up, facing])  # board x, y (up it), normal
+    shift = np.asarray(centre, np.float64) - rotation @ board.corners_of(board.ids).mean(axis=0)
+    return Target(board.family, tuple(Tag(t.tag_id, t.corners @ rotation.T + shift) for t in board.tags),
+                  border_bits=board.border_bits)

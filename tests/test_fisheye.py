@@ -97,3 +97,25 @@ def test_the_tracker_keeps_its_map_behind_a_fisheye(tmp_path_factory):
 
     score, _, _ = replay(tmp_path_factory, "spin_in_place", calibration=lens_calibration("fisheye_hd"))
     assert score.coverage >= 0.99 and score.rmse_m < 0.008, score
+
+
+def test_a_very_wide_fisheye_is_solved_from_another_start():
+    """f 200 px at 640x480: 12 views of a grid projected exactly (0.05 px of noise). From
+    OpenCV's own start (f = larger side / pi) cv2.fisheye.calibrate ends at 72 px; the solve
+    starts from several focal lengths and keeps the best."""
+    from calib.camera_info import CameraCalibration
+    from calib.solve import SolveOptions, View, solve
+    from fakes.board_views import random_poses
+    from fakes.optics import project
+
+    board = parse_board(GRID)
+    camera = CameraCalibration(640, 480, np.array([[200.0, 0.0, 321.0], [0.0, 200.0, 239.0], [0.0, 0.0, 1.0]]),
+                               np.array([0.01, -0.004, 0.002, -0.0005]), "equidistant")
+    rng = np.random.default_rng(3)
+    views = []
+    for index, (rotation, translation) in enumerate(random_poses(board, camera, 12, rng)):
+        pixels = project(board.object_points().astype(np.float64) @ rotation.T + translation, camera)
+        views.append(View(str(index), (pixels + rng.normal(0.0, 0.05, pixels.shape)).astype(np.float32),
+                          board.object_points()))
+    solution = solve(views, camera.size, SolveOptions(model="equidistant"))
+    assert solution.rms_px < 0.1 and abs(solution.camera_matrix[0, 0] / 200.0 - 1) < 0.001, solution.rms_px

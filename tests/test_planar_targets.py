@@ -11,13 +11,13 @@ import pytest
 from calib.camera_info import paper_camera
 from fakes import Room, render_view
 from fakes.lenses import lens_calibration
-from fakes.planar_views import rendered_board_view
+from fakes.planar_views import rendered_board_view, standing_board
 from positioning.detection import TagDetector
 from positioning.estimator import PoseState
 from positioning.evaluation import decoded_corners_pose
 from positioning.geometry import look_at
 from positioning.single_frame import TargetPoseProcessor
-from positioning.target import Tag, Target, make_board
+from positioning.target import make_board
 from positioning.tracking.options import BundleOptions
 from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
@@ -75,10 +75,8 @@ def test_the_tracker_starts_on_a_board_and_keeps_the_pose_when_it_leaves_the_vie
     view. The map starts on the board's poses (one plane is all a board has) and carries
     the pose on (measured: all 70 frames, at most 1.7 mm off; before, a board never started
     the tracker: "initialisation needs 2 faces")."""
-    flat = make_board(rows=3, cols=4, tag_size_m=0.0955, gap_m=0.024)
-    upright = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # faces -y, rows going down
-    shift = np.array([0.0, 0.0, 1.0]) - upright @ flat.corners_of(flat.ids).mean(axis=0)
-    board = Target(flat.family, tuple(Tag(t.tag_id, t.corners @ upright.T + shift) for t in flat.tags))
+    board = standing_board(make_board(rows=3, cols=4, tag_size_m=0.0955, gap_m=0.024), np.array([0.0, 0.0, 1.0]),
+                           np.array([0.0, -1.0, 0.0]))  # 1 m up, facing -y
     camera = lens_calibration("vga")
     room = Room(x_range=(-6.0, 6.0), y_range=(-6.0, 6.0), z_range=(0.0, 3.0))
     processor = TrackingProcessor(board, camera, replace(ProcessorOptions(), tracker=replace(
