@@ -87,6 +87,10 @@ def _field_of_view(calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarr
     w, h = calibration.width - 1, calibration.height - 1
     border = np.array([[0, 0], [w / 2, 0], [w, 0], [w, h / 2], [w, h], [w / 2, h], [0, h], [0, h / 2]], np.float64)
     rays = undistort(border, calibration)
+    # a fisheye seeing beyond 90 deg off axis: those rays have no (x, y, 1) and come back
+    # mirrored through the centre; they bound nothing
+    ahead = np.einsum("ij,ij->i", rays, border - [calibration.cx, calibration.cy]) > 0
+    rays = rays[ahead] if ahead.any() else np.zeros((1, 2))
     return rays.min(axis=0), rays.max(axis=0)
 
 
