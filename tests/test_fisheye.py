@@ -119,3 +119,16 @@ def test_a_very_wide_fisheye_is_solved_from_another_start():
                           board.object_points()))
     solution = solve(views, camera.size, SolveOptions(model="equidistant"))
     assert solution.rms_px < 0.1 and abs(solution.camera_matrix[0, 0] / 200.0 - 1) < 0.001, solution.rms_px
+
+
+def test_the_tag_search_field_of_a_fisheye_seeing_past_90_degrees():
+    """TUM-VI's camera (1024x1024, f 382 px) sees 108 deg off axis in its image corners: those
+    rays come back from cv2.fisheye mirrored through the centre (x, y of +-106), and the tag
+    search's field is bounded by the rays that are ahead (x, y within +-4.5)."""
+    from calib.camera_info import CameraCalibration
+    from positioning.tag_search import _field_of_view
+
+    camera = CameraCalibration(1024, 1024, np.array([[381.5, 0.0, 510.2], [0.0, 381.3, 514.2], [0.0, 0.0, 1.0]]),
+                               np.array([0.0044, -0.0001, -0.002, 0.0004]), "equidistant")
+    low, high = _field_of_view(camera)
+    assert np.all(low < -4.0) and np.all(low > -4.6) and np.all(high > 4.0) and np.all(high < 4.6), (low, high)
