@@ -4,6 +4,7 @@ Used by ``TargetObserver`` (observer.py)."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,15 +84,26 @@ class TagRegion:
 
 def _field_of_view(calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
     """The smallest and largest normalised (x, y) of the rays through the image's border
-    (its corners and the middles of its sides)."""
-    w, h = calibration.width - 1, calibration.height - 1
+    (its corners and the middles of its sides); worked out once per calibration."""
+    return _field_of_view_of(calibration.width, calibration.height, calibration.camera_matrix.tobytes(),
+                             calibration.distortion.tobytes(), calibration.distortion_model)
+
+
+@functools.lru_cache(maxsize=8)
+def _field_of_view_of(width: int, height: int, k_bytes: bytes, d_bytes: bytes,
+                      model: str) -> tuple[np.ndarray, np.ndarray]:
+    calibration = CameraCalibration(width, height, np.frombuffer(k_bytes).reshape(3, 3), np.frombuffer(d_bytes), model)
+    w, h = width - 1, height - 1
     border = np.array([[0, 0], [w / 2, 0], [w, 0], [w, h / 2], [w, h], [w / 2, h], [0, h], [0, h / 2]], np.float64)
     rays = undistort(border, calibration)
     # a fisheye seeing beyond 90 deg off axis: those rays have no (x, y, 1) and come back
     # mirrored through the centre; they bound nothing
     ahead = np.einsum("ij,ij->i", rays, border - [calibration.cx, calibration.cy]) > 0
     rays = rays[ahead] if ahead.any() else np.zeros((1, 2))
-    return rays.min(axis=0), rays.max(axis=0)
+    low, high = rays.min(axis=0), rays.max(axis=0)
+    low.setflags(write=False)
+    high.setflags(write=False)
+    return low, high
 
 
 def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
