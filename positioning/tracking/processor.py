@@ -161,10 +161,11 @@ class TrackingProcessor:
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
         result = out.result
-        # lost (bridged by wheel odometry or not), or held on rays: look for the map's
-        # keyframes; a match ends either
+        # lost (bridged by wheel odometry or not), held on rays, or beginning the map again
+        # on the target: look for the map's keyframes; a match ends each
         bridged = result.status == "bridged"
-        searching = self.tracker.initialised and (self.tracker.holding or self.tracker.lost)
+        searching = self.tracker.initialised and (self.tracker.holding or self.tracker.lost
+                                                  or self.tracker.beginning_again)
         if searching:
             self._lost_frames += 1
             every = 1 if self._booting else self.options.relocalise_every  # at boot nothing else can give a pose

@@ -3,10 +3,10 @@
 Per frame it takes feature tracks (ids and pixels, from ``features.KltFrontEnd`` or any
 other source) and, when the target is in view, a trusted target pose with its corners.
 
-- Before a map exists it runs the paper's Algorithms 1 and 2 (``initialiser``); when the
-  target has gone before Algorithm 2's median parallax (out of the view, the hold on rays
-  ended, or the reference's tracks run out), the map begins on the longest baseline the
-  target gave (``Initialiser.on_departure``).
+- Before a map exists it runs the paper's Algorithms 1 and 2 (``beginning``,
+  ``initialiser``); when the target has gone before Algorithm 2's median parallax (out of
+  the view, the hold on rays ended, or the reference's tracks run out), the map begins on
+  the longest baseline the target gave (``Initialiser.on_departure``).
 - Afterwards the pose comes from PnP with RANSAC on the map points' tracks, refined with
   Levenberg-Marquardt on the inliers, refused 0.5 m or 5 deg from the motion model's.
 - While the target is trusted, its pose is the published pose and keyframes made then
@@ -34,6 +34,11 @@ other source) and, when the target is in view, a trusted target pose with its co
   plus the drift since the target was last trusted (``hold.Drift``).
 - No pose from any of these: the frame is "lost" (no estimate). Recovery is by the
   target, or by ``relocalised()`` when the caller matched the image to keyframes.
+- Lost, and the target's pose is sure enough to begin a map (``init.max_position_std_m``)
+  but not to anchor keyframes: Algorithms 1 and 2 run again on it, as at the start, while
+  the map gives no pose, and the map they begin joins this one (``beginning_again``); the
+  caller keeps looking for the map's keyframes meanwhile, and a relocalisation into them
+  ends it.
 """
 
 from __future__ import annotations
@@ -49,14 +54,9 @@ from positioning.camera_model import project, undistort
 from positioning.estimator import FrameResult, PoseEstimate, PoseState
 from positioning.geometry import Transform
 from positioning.tracking import bundle
+from positioning.tracking.beginning import MapBeginning
 from positioning.tracking.hold import Drift, RayHold, position_sigma
-from positioning.tracking.initialiser import (
-    InitFrame,
-    Initialiser,
-    InitResult,
-    InitStatus,
-    out_of_view,
-)
+from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
@@ -66,7 +66,7 @@ from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 log = structlog.get_logger()
 
 
-class Tracker:
+class Tracker(MapBeginning):
     def __init__(self, calibration: CameraCalibration, options: TrackerOptions | None = None) -> None:
         self.calibration = calibration
         self.options = options or TrackerOptions()
@@ -98,6 +98,9 @@ class Tracker:
         self._frame_sigma = 0.0  # this frame's pose: its own position standard deviation
         self._scale_points_added = 0  # the map's points_added when the drift's scale was last measured
         self._reference_target: TargetObservation | None = None
+        # lost, and the target sure enough to begin a map, not to anchor keyframes:
+        # Algorithms 1 and 2 run again and add their map to this one (beginning.py)
+        self._beginning_again = False
         self._best_target: TargetObservation | None = None  # of the initialiser's best frame B
         self._kf_points_at_insert = 0
         self._frames_since_keyframe = 0
@@ -128,11 +131,24 @@ class Tracker:
                                                                 self.fx)
         if self.odometry is not None:  # the wheels' motion since the last pose: a relative-motion factor
             tracked, covariance = self.odometry.fuse(tracked, covariance, self._last, self._last_stamp, stamp_ns)
+        if tracked is None and trusted is not None and self._begins_again(trusted):
+            return self._initialising(stamp_ns, tracks, xn, trusted)
+        if tracked is None and self._beginning_again and self._anchors(trusted, self.options.anchor_max_position_std_m):
+            # a pose that anchors keyframes is also Algorithm 2's frame B for the reference held
+            begun = self._completes_beginning(stamp_ns, tracks, xn, trusted)
+            if begun is not None:
+                return begun
+        if tracked is not None or self._anchors(trusted, self.options.anchor_max_position_std_m):
+            self._end_beginning_again()
         held = None
         if tracked is None and trusted is None and prediction is not None:
             odometry = None if self.odometry is None or not self.odometry.as_prior else self.odometry.covariance(
                 self._hold.since or self._last_stamp, stamp_ns)
             held = self._hold.hold(stamp_ns, self._last, self._last_stamp, prediction, tracks, xn, self.map, odometry)
+        if trusted is None and self._beginning_again:
+            departed = self._departed(held, stamp_ns, tracks)
+            if departed is not None:
+                return departed
         if trusted is not None and tracked is not None and self._anchors(trusted):
             # how far the map's own pose is from the target's: what a tracking pose may be
             # off by as soon as the target leaves (the drift's floor)
@@ -222,7 +238,7 @@ class Tracker:
         self._frame_xn = all_xn
         if self._frame_keyframe is not None:
             self._frame_keyframe.add_observations(tracks.ids, xn)
-        elif not self.initialised and self._anchors(self._frame_target):
+        elif (not self.initialised or self._beginning_again) and self._anchors(self._frame_target):
             frame = InitFrame(self._frame_stamp, self._frame_target.T_world_camera, self._frame_target.planes,
                               all_ids, all_xn)
             if self.initialiser.try_reference(frame).status is InitStatus.REFERENCE_SET:
@@ -235,6 +251,7 @@ class Tracker:
         fresh corners that ``add_tracks`` brings next can be triangulated against it.
         Returns the pose's covariance: the match's (``covariance``) plus the drift."""
         self._drift.relocalised(covariance)
+        self._end_beginning_again()
         match, covariance = covariance, self._drift.covariance(self._last, pose, covariance)
         self._hold.end()
         self.lost = False
@@ -253,85 +270,6 @@ class Tracker:
     @property
     def last_pose(self) -> Transform | None:
         return self._last
-
-    # ------------------------------------------------------------------ initialisation
-    def _initialising(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
-                      trusted: TargetObservation | None) -> TrackerOutput:
-        empty = np.zeros(0, np.int64)
-        if trusted is None:
-            status = InitStatus.NO_TARGET_POSE
-            prediction = self.predict(stamp_ns)
-            held = None if prediction is None else self._hold.hold(stamp_ns, self._last, self._last_stamp,
-                                                                    prediction, tracks, xn, self.map)
-            best = self._best_target
-            if best is not None and (held is None or out_of_view(held[0], best.corners_world, self.calibration)):
-                # the target has left the view (or nothing holds the pose without it) before
-                # Algorithm 2's median parallax: the map begins on the target's longest baseline
-                result = self.initialiser.on_departure()
-                self._best_target = None
-                if result.status is InitStatus.INITIALISED:
-                    return self._begin_on_earlier_frame(result, best, stamp_ns, tracks)
-            if held is None:
-                self._hold.end()
-                return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
-            # the target hidden (a passer-by) before the map exists: held on the rays of
-            # tracks born on target poses, the map still waits for the target
-            pose, covariance = held[0], self._drift.covariance(self._last, held[0], held[1])  # the path since
-            self._hold.rebase(None, tracks.ids, xn)
-            self._update_motion(pose, stamp_ns)
-            self._frame_pose = pose
-            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, covariance)
-            return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
-                                 empty, status)
-        self._hold.end()
-        estimate = PoseEstimate(trusted.T_world_camera, PoseState.TARGET, trusted.planes, trusted.tag_ids,
-                                trusted.reproj_rms_px, trusted.covariance)
-        self._hold.rebase(trusted.T_world_camera, tracks.ids, xn)
-        self._update_motion(trusted.T_world_camera, stamp_ns)
-        if not self._anchors(trusted):
-            # published, but too uncertain to fix the map's scale and frame
-            return TrackerOutput(FrameResult(estimate, "ok", "initialising: target pose too uncertain to anchor"),
-                                 False, empty, InitStatus.UNCERTAIN_TARGET_POSE)
-        frame = InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, tracks.ids, xn)
-        if self.initialiser.reference is None:
-            # Algorithm 1 runs on this frame once the front end has added fresh corners
-            return TrackerOutput(FrameResult(estimate, "ok", "initialising: reference frame"), True, empty,
-                                 InitStatus.REFERENCE_SET)
-        result = self.initialiser.step(frame)
-        best = self._best_target
-        if self.initialiser.best is frame or self.initialiser.best is None:
-            self._best_target = trusted if self.initialiser.best is frame else None
-        if result.status is InitStatus.TOO_FEW_MATCHES:
-            return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status)
-        if result.status is not InitStatus.INITIALISED:
-            return TrackerOutput(FrameResult(estimate, "ok", result.detail), False, empty, result.status)
-        if result.frame is not frame:  # the reference's tracks ran out: the longest baseline weighed
-            return self._begin_on_earlier_frame(result, best, stamp_ns, tracks)
-        self._start_map(result, trusted)
-        self._frame_pose = trusted.T_world_camera
-        return TrackerOutput(FrameResult(estimate, "ok", result.detail), True, empty, result.status, True)
-
-    def _begin_on_earlier_frame(self, result: InitResult, target_b: TargetObservation, stamp_ns: int,
-                                tracks: Tracks) -> TrackerOutput:
-        """The map begins on an earlier frame B (``Initialiser.on_departure``), and this
-        frame is tracked on it."""
-        self._start_map(result, target_b)
-        self._hold.end()
-        return replace(self.step(stamp_ns, tracks, self._frame_target), init_status=result.status)
-
-    def _start_map(self, result: InitResult, target_b: TargetObservation) -> None:
-        """The map of an initialisation: keyframes A and B, anchored on the target, and the points."""
-        log.debug("tracker.initialised", detail=result.detail)
-        a, ta, b = result.reference, self._reference_target, result.frame
-        kf_a = self.map.add_keyframe(a.stamp_ns, a.T_world_camera, a.track_ids, a.xn,
-                                     ta.corners_world, undistort(ta.corners_px, self.calibration))
-        kf_b = self.map.add_keyframe(b.stamp_ns, b.T_world_camera, b.track_ids, b.xn,
-                                     target_b.corners_world, undistort(target_b.corners_px, self.calibration))
-        for track_id, point in zip(result.track_ids, result.points_world, strict=True):
-            self.map.add_point(int(track_id), point, kf_a.kf_id)
-        self.initialised, self._frame_keyframe = True, kf_b
-        self._kf_points_at_insert, self._frames_since_keyframe = len(result.track_ids), 0
-        self._schedule_bundle()
 
     # ------------------------------------------------------------------ tracking
     def predict(self, stamp_ns: int) -> Transform | None:
@@ -399,12 +337,15 @@ class Tracker:
         projected[unusable] = np.asarray(pixels, np.float64).reshape(-1, 2)[unusable]
         return projected
 
-    def _anchors(self, target: TargetObservation | None) -> bool:
+    def _anchors(self, target: TargetObservation | None, bound: float | None = None) -> bool:
         """Is this target pose sure enough to hold a keyframe (and so the map) in place? A less sure one
-        is published, not bent to; before a map exists ``init.max_position_std_m`` (none is worse)."""
+        is published, not bent to; with no map to track on (before one exists, or beginning
+        again) ``init.max_position_std_m`` (none is worse). ``bound`` asks for another."""
         if target is None or target.reproj_rms_px > self.options.anchor_max_reproj_px:
             return False
-        bound = self.options.anchor_max_position_std_m if self.initialised else self.options.init.max_position_std_m
+        if bound is None:
+            beginning = not self.initialised or self._beginning_again
+            bound = self.options.init.max_position_std_m if beginning else self.options.anchor_max_position_std_m
         return target.covariance is None or position_sigma(target.covariance) <= bound
 
     def _jumped(self, a: Transform, b: Transform) -> bool:
