@@ -29,6 +29,8 @@ log = structlog.get_logger()
 
 
 class MapBeginning:
+    """The ``Tracker`` methods that begin its map; they read and write its state (``reset``)."""
+
     @property
     def beginning_again(self) -> bool:
         """Lost, and Algorithms 1 and 2 run again on the target (``_begins_again``) until
@@ -37,6 +39,9 @@ class MapBeginning:
 
     def _initialising(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
                       trusted: TargetObservation | None) -> TrackerOutput:
+        """A frame while no map exists, or while it begins again: Algorithm 1 or 2 on a
+        trusted target pose; without one, the hold on rays, or the map begun on the
+        target's longest baseline when the target has left."""
         empty = np.zeros(0, np.int64)
         if trusted is None:
             status = InitStatus.NO_TARGET_POSE
