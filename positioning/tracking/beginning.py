@@ -136,6 +136,23 @@ class MapBeginning:
         self._kf_points_at_insert, self._frames_since_keyframe = len(result.track_ids), 0
         self._schedule_bundle()
 
+    def _beginning_again_on(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
+                            trusted: TargetObservation | None, tracked: bool) -> TrackerOutput | None:
+        """A frame of a map that exists: this frame's output when the map begins again on
+        ``trusted`` (or goes on beginning), None when the frame takes the usual way
+        (``tracked``: the map gave a pose, which ends a beginning, as an anchoring pose does)."""
+        if not tracked and trusted is not None and self._begins_again(trusted):
+            return self._initialising(stamp_ns, tracks, xn, trusted)
+        anchoring = self._anchors(trusted, self.options.anchor_max_position_std_m)
+        if not tracked and anchoring and self._beginning_again:
+            # a pose that anchors keyframes is also Algorithm 2's frame B for the reference held
+            begun = self._completes_beginning(stamp_ns, tracks, xn, trusted)
+            if begun is not None:
+                return begun
+        if tracked or anchoring:
+            self._end_beginning_again()
+        return None
+
     def _begins_again(self, target: TargetObservation) -> bool:
         """The tracker is lost and ``target`` is too unsure to anchor a keyframe, but sure
         enough to begin a map: Algorithms 1 and 2 run on it again (their baseline makes its

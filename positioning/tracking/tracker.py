@@ -131,15 +131,9 @@ class Tracker(MapBeginning):
                                                                 self.fx)
         if self.odometry is not None:  # the wheels' motion since the last pose: a relative-motion factor
             tracked, covariance = self.odometry.fuse(tracked, covariance, self._last, self._last_stamp, stamp_ns)
-        if tracked is None and trusted is not None and self._begins_again(trusted):
-            return self._initialising(stamp_ns, tracks, xn, trusted)
-        if tracked is None and self._beginning_again and self._anchors(trusted, self.options.anchor_max_position_std_m):
-            # a pose that anchors keyframes is also Algorithm 2's frame B for the reference held
-            begun = self._completes_beginning(stamp_ns, tracks, xn, trusted)
-            if begun is not None:
-                return begun
-        if tracked is not None or self._anchors(trusted, self.options.anchor_max_position_std_m):
-            self._end_beginning_again()
+        begun = self._beginning_again_on(stamp_ns, tracks, xn, trusted, tracked is not None)
+        if begun is not None:
+            return begun
         held = None
         if tracked is None and trusted is None and prediction is not None:
             odometry = None if self.odometry is None or not self.odometry.as_prior else self.odometry.covariance(
