@@ -19,7 +19,8 @@ frame (median of 5), and on the EuRoC frame (whose published calibration is know
 well each set of corners fits: the reprojection RMS of one pose of Kalibr's grid, and the
 RMS distance of the corners of each tag row from their line in the undistorted image.
 
-Environment: ``CUBELOC_BENCH_PLANAR_VIEWS`` views per case (default 40),
+Environment: ``CUBELOC_BENCH_PLANAR_VIEWS`` views per case (default 120: with 40 a median moved by a
+millimetre with one view),
 ``CUBELOC_BENCH_PLANAR_JOBS`` processes (default 2).
 """
 
@@ -244,7 +245,7 @@ def fisheye_frames() -> str:
 
 
 def run() -> str:
-    views = int(os.environ.get("CUBELOC_BENCH_PLANAR_VIEWS", "40"))
+    views = int(os.environ.get("CUBELOC_BENCH_PLANAR_VIEWS", "120"))
     jobs = int(os.environ.get("CUBELOC_BENCH_PLANAR_JOBS", "2"))
     return (f"Board renders, {views} seeded views a case (errors in mm of the camera position, "
             f"median / 90th percentile / max, on the views both posed):\n\n{renders(views, jobs)}\n\n"

@@ -25,7 +25,7 @@ import numpy as np
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_pose, project_with_jacobian
-from positioning.corner_pose import TargetPose
+from positioning.corner_pose import MIN_CORNER_SIGMA_PX, TargetPose
 from positioning.geometry import Transform
 from positioning.jit import compiled, read_only
 from positioning.step_profiles import step_positions
@@ -117,6 +117,8 @@ class EdgeFit:
     residuals_px: np.ndarray  # (K,) normal offsets of the profiles kept, after the fit
     jacobian: np.ndarray  # (K, 6) d(offset)/d(omega, delta_t), left perturbation in the camera frame
     profiles: int
+    # (6, 6) what the corners fitted beside the edges tell of (omega, delta_t): J^T J / sigma^2
+    corner_information: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((6, 6)))
 
     @property
     def rvec(self) -> np.ndarray:
@@ -127,18 +129,47 @@ class EdgeFit:
         return self.translation
 
     def covariance(self, min_sigma_px: float = MIN_PROFILE_SIGMA_PX) -> np.ndarray:
-        """6x6 covariance of T_world_camera (ROS order: position, world rotation).
+        """6x6 covariance of T_world_camera (ROS order: position, world rotation), from
+        the profiles and the corners fitted with them.
 
         With X_c' = exp(omega) X_c + delta_t, the camera position moves by -R^T delta_t
         and the world-frame rotation by -R^T omega (to first order)."""
         dof = max(self.residuals_px.size - 6, 1)
         sigma2 = max(float(np.sum(self.residuals_px**2)) / dof, min_sigma_px**2)
-        cov_local = sigma2 * np.linalg.pinv(self.jacobian.T @ self.jacobian)
+        if self.corner_information.any():
+            cov_local = np.linalg.pinv(self.jacobian.T @ self.jacobian / sigma2 + self.corner_information)
+        else:
+            cov_local = sigma2 * np.linalg.pinv(self.jacobian.T @ self.jacobian)
         g = np.zeros((6, 6))
         g[:3, 3:] = -self.rotation.T
         g[3:, :3] = -self.rotation.T
         cov = g @ cov_local @ g.T
         return (cov + cov.T) / 2.0
+
+
+@dataclass(frozen=True)
+class Corners:
+    """Tag corners fitted beside the edges: world points (N, 3), their pixels (N, 2), and
+    the pixel noise their pose's residuals show (``corner_pose.MIN_CORNER_SIGMA_PX`` at
+    least)."""
+
+    points_world: np.ndarray
+    pixels: np.ndarray
+    sigma_px: float
+
+    def normal_equations(self, rotation: np.ndarray, translation: np.ndarray,
+                         calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
+        """(J^T J, J^T r) / sigma^2 at the pose, for the left perturbation (omega, delta_t)."""
+        points = self.points_world @ rotation.T + translation
+        pixels, point_j = project_with_jacobian(points, calibration)
+        cross = np.zeros((len(points), 3, 3))  # -[X]x: d(exp(omega) X)/d(omega)
+        cross[:, 0, 1], cross[:, 0, 2] = points[:, 2], -points[:, 1]
+        cross[:, 1, 0], cross[:, 1, 2] = -points[:, 2], points[:, 0]
+        cross[:, 2, 0], cross[:, 2, 1] = points[:, 1], -points[:, 0]
+        jacobian = np.concatenate([point_j @ cross, point_j], axis=2).reshape(-1, 6)
+        residuals = (self.pixels - pixels).reshape(-1)
+        weight = 1.0 / self.sigma_px**2
+        return jacobian.T @ jacobian * weight, jacobian.T @ residuals * weight
 
 
 def _layout(pixels, point_j, tangents, normals, cell_m, width, height, half_cells, max_half, min_half,
@@ -277,10 +308,18 @@ def _rotation_of(omega: np.ndarray) -> np.ndarray:
 
 def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibration, tag_ids: tuple[int, ...],
                    rvec: np.ndarray, tvec: np.ndarray, iterations: int | None = None,
-                   samples_per_cell: int | None = None) -> EdgeFit | None:
+                   samples_per_cell: int | None = None, corners: Corners | None = None) -> EdgeFit | None:
     """The pose (solver convention: T_camera_world as rvec, tvec) aligned to the edges of
     ``tag_ids`` in ``image``; None when too few edges could be measured. Each iteration
-    measures every profile afresh at the current pose and takes one Gauss-Newton step."""
+    measures every profile afresh at the current pose and takes one Gauss-Newton step.
+
+    Where every edge measured runs one way (the cells across them foreshortened below
+    MIN_HALF_WIDTH_PX in an oblique view) the pose slides along them unseen: the normal
+    equations are singular. There, and only there, ``corners`` are fitted with the edges,
+    each set weighed by its own noise (the edges' step alone moved the pose by noise along
+    that direction: 30 mm on 752x480 boards). Wherever the edges measure the whole pose
+    they are fitted alone: the corners, biased by blur, would pull the directions the
+    edges measure weakly their way (a two-face cube at 640x512: 1.3 -> 1.7 mm median)."""
     iterations = ITERATIONS if iterations is None else iterations
     rotation = _rotation_of(rvec)
     translation = np.asarray(tvec, np.float64).reshape(3).copy()
@@ -324,14 +363,23 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
         sigma = 1.4826 * np.median(np.abs(offset - centre)) + 1e-3
         inlier = np.abs(offset - centre) <= 4.0 * sigma + 0.05
         a, b = jacobian[inlier], offset[inlier]
-        step = np.linalg.solve(a.T @ a, a.T @ b)  # normal equations: 6 unknowns, well posed
+        normal = a.T @ a
+        with_corners = corners is not None and np.linalg.matrix_rank(normal) < 6
+        if with_corners:
+            profile_weight = 1.0 / max(sigma, MIN_PROFILE_SIGMA_PX) ** 2
+            corner_normal, corner_gradient = corners.normal_equations(rotation, translation, calibration)
+            step = np.linalg.solve(normal * profile_weight + corner_normal, a.T @ b * profile_weight + corner_gradient)
+        else:
+            step = np.linalg.solve(normal, a.T @ b)  # normal equations: 6 unknowns
         if not np.all(np.isfinite(step)):
             return None
         small = _rotation_of(step[:3])
         rotation, translation = small @ rotation, small @ translation + step[3:]
         fit = (a, b - a @ step)
     a, residuals = fit
-    return EdgeFit(rotation, translation, residuals, a, len(residuals))
+    corner_information = corners.normal_equations(rotation, translation, calibration)[0] if with_corners \
+        else np.zeros((6, 6))
+    return EdgeFit(rotation, translation, residuals, a, len(residuals), corner_information)
 
 
 def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
@@ -347,8 +395,13 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     this camera (more is taken for blur)."""
     if pose.rvec is None or pose.tvec is None:
         return pose
+    corners = pose.points_world
+    observed = pose.residuals_px + project_pose(corners, pose.rvec, pose.tvec, calibration)
+    dof = max(pose.residuals_px.size - 6, 1)
+    corner_sigma = max(float(np.sqrt(np.sum(pose.residuals_px**2) / dof)), MIN_CORNER_SIGMA_PX)
     try:
-        fit = align_to_edges(image, target, calibration, pose.tag_ids, pose.rvec, pose.tvec, iterations)
+        fit = align_to_edges(image, target, calibration, pose.tag_ids, pose.rvec, pose.tvec, iterations,
+                             corners=Corners(corners, observed, corner_sigma))
     except (np.linalg.LinAlgError, ValueError):
         fit = None
     if fit is None:
@@ -357,8 +410,6 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     T_world_camera = Transform.from_rvec_tvec(rvec, tvec).inverse()
     if float(np.linalg.norm(T_world_camera.translation - pose.T_world_camera.translation)) > max_shift_m:
         return pose
-    corners = pose.points_world
-    observed = pose.residuals_px + project_pose(corners, pose.rvec, pose.tvec, calibration)
     residuals = observed - project_pose(corners, rvec, tvec, calibration)
     # The profiles' residuals do not show what motion blur does to the edges (they stay
     # ~0.04 px while the pose is 1-3 mm off: agile); the tag corners do, by disagreeing
