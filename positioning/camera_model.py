@@ -17,7 +17,11 @@ independent optics on purpose: it is the ground truth.
 * ``project_normalised(T_camera_world, points_world)``: normalised projections and depths;
 * ``solver_pixels(pixels, calibration)``: pixels, camera matrix and distortion to give
   OpenCV's PnP solvers, which know the pinhole models only (a fisheye's pixels go as the
-  pixels of a pinhole camera with the same camera matrix).
+  pixels of a pinhole camera with the same camera matrix);
+* ``ahead(pixels)``, ``ahead_mask(calibration)``: which pixels see less than 90 deg off
+  the axis, the only rays normalised coordinates (x, y, 1) can describe (a fisheye such
+  as TUM-VI's sees 108 deg in its image corners; ``undistort`` returns those rays
+  mirrored through the centre).
 """
 
 from __future__ import annotations
@@ -84,6 +88,42 @@ def undistort(pixels: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
         out = cv2.undistortPoints(src, calibration.camera_matrix, calibration.distortion, None,
                                   _IDENTITY, _IDENTITY, UNDISTORT_CRITERIA)
     return out.reshape(-1, 2)
+
+
+def _ahead_radius(calibration: CameraCalibration) -> float | None:
+    """A fisheye's distorted normalised radius of the rays 90 deg off the axis (theta_d at
+    theta = pi / 2); None for the pinhole models, whose every pixel looks ahead."""
+    if not calibration.is_fisheye:
+        return None
+    k = np.zeros(4)
+    coefficients = np.asarray(calibration.distortion, np.float64).ravel()[:4]
+    k[: len(coefficients)] = coefficients
+    theta = np.pi / 2
+    return float(theta * (1 + k[0] * theta**2 + k[1] * theta**4 + k[2] * theta**6 + k[3] * theta**8))
+
+
+def ahead(pixels: np.ndarray, calibration: CameraCalibration) -> np.ndarray:
+    """(N,) True where a pixel's ray is less than 90 deg off the optical axis."""
+    pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
+    radius = _ahead_radius(calibration)
+    if radius is None:
+        return np.ones(len(pixels), bool)
+    k = calibration.camera_matrix
+    y = (pixels[:, 1] - k[1, 2]) / k[1, 1]
+    x = (pixels[:, 0] - k[0, 2] - k[0, 1] * y) / k[0, 0]
+    return np.hypot(x, y) < radius
+
+
+def ahead_mask(calibration: CameraCalibration) -> np.ndarray | None:
+    """(height, width) uint8, 255 where ``ahead``; None when every pixel is."""
+    if _ahead_radius(calibration) is None:
+        return None
+    u, v = np.meshgrid(np.arange(calibration.width, dtype=np.float64),
+                       np.arange(calibration.height, dtype=np.float64))
+    inside = ahead(np.column_stack([u.ravel(), v.ravel()]), calibration)
+    if inside.all():
+        return None
+    return (inside.reshape(calibration.height, calibration.width) * 255).astype(np.uint8)
 
 
 def outline_pixels(normalised: np.ndarray, calibration: CameraCalibration) -> np.ndarray:

@@ -32,7 +32,7 @@ import structlog
 
 from calib.camera_info import CameraCalibration
 from positioning import jit
-from positioning.camera_model import project_pose
+from positioning.camera_model import ahead, project_pose
 from positioning.corner_pose import TargetPose, pose_covariance
 from positioning.detection import (
     DetectorOptions,
@@ -149,9 +149,13 @@ class TargetObserver:
         self.last_search = ""
 
     def _ours(self, detections: list[TagDetection]) -> list[TagDetection]:
+        """The target's tags among ``detections`` (each id once), all of them noted as
+        decoded; returned only where every corner looks less than 90 deg off the axis (a
+        fisheye's image corners may look further: the solvers' normalised coordinates
+        would place such a corner on the wrong side)."""
         ours = unique_target_detections(detections, self.target)
         self._decoded.update((d.tag_id, d.corners) for d in ours)
-        return ours
+        return [d for d in ours if ahead(d.corners, self.calibration).all()]
 
     def _detect_in(self, image: np.ndarray, regions: list[TagRegion], decimate: float | None) -> list[TagDetection]:
         found: list[TagDetection] = []

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import project, undistort
+from positioning.camera_model import ahead, project, undistort
 from positioning.detection import cells_across, library_decimate
 from positioning.geometry import Transform
 from positioning.target import Target
@@ -95,11 +95,9 @@ def _field_of_view_of(width: int, height: int, k_bytes: bytes, d_bytes: bytes,
     calibration = CameraCalibration(width, height, np.frombuffer(k_bytes).reshape(3, 3), np.frombuffer(d_bytes), model)
     w, h = width - 1, height - 1
     border = np.array([[0, 0], [w / 2, 0], [w, 0], [w, h / 2], [w, h], [w / 2, h], [0, h], [0, h / 2]], np.float64)
-    rays = undistort(border, calibration)
-    # a fisheye seeing beyond 90 deg off axis: those rays have no (x, y, 1) and come back
-    # mirrored through the centre; they bound nothing
-    ahead = np.einsum("ij,ij->i", rays, border - [calibration.cx, calibration.cy]) > 0
-    rays = rays[ahead] if ahead.any() else np.zeros((1, 2))
+    # a fisheye seeing beyond 90 deg off axis: those rays have no (x, y, 1); they bound nothing
+    border = border[ahead(border, calibration)]
+    rays = undistort(border, calibration) if len(border) else np.zeros((1, 2))
     low, high = rays.min(axis=0), rays.max(axis=0)
     low.setflags(write=False)
     high.setflags(write=False)

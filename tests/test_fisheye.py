@@ -132,3 +132,56 @@ def test_the_tag_search_field_of_a_fisheye_seeing_past_90_degrees():
                                np.array([0.0044, -0.0001, -0.002, 0.0004]), "equidistant")
     low, high = _field_of_view(camera)
     assert np.all(low < -4.0) and np.all(low > -4.6) and np.all(high > 4.0) and np.all(high < 4.6), (low, high)
+
+
+def _tum_vi_camera():
+    from calib.camera_info import CameraCalibration
+
+    return CameraCalibration(1024, 1024, np.array([[381.5, 0.0, 510.2], [0.0, 381.3, 514.2], [0.0, 0.0, 1.0]]),
+                             np.array([0.0044, -0.0001, -0.002, 0.0004]), "equidistant")
+
+
+def _pixel_at(camera, theta_deg: float, azimuth: float) -> np.ndarray:
+    """The pixel of the ray ``theta_deg`` off axis, from the equidistant formula itself."""
+    theta = np.radians(theta_deg)
+    k = camera.distortion
+    theta_d = theta * (1 + k[0] * theta**2 + k[1] * theta**4 + k[2] * theta**6 + k[3] * theta**8)
+    return np.array([[camera.fx * theta_d * np.cos(azimuth) + camera.cx,
+                      camera.fy * theta_d * np.sin(azimuth) + camera.cy]])
+
+
+def test_pixels_seeing_past_90_degrees_are_told_apart_and_kept_out_of_the_features():
+    """TUM-VI's image corners look 108 deg off axis. Such a ray has no normalised (x, y, 1),
+    and undistort() returns it mirrored through the centre, so ``ahead`` tells those pixels
+    apart (89 deg ahead, 91 deg not, in every direction), and neither the tracker's features
+    nor the relocaliser's corners are born there, nor do tracks go there."""
+    from positioning.camera_model import ahead, ahead_mask
+    from positioning.tracking.features import KltFrontEnd
+    from positioning.tracking.options import FeatureOptions
+
+    camera = _tum_vi_camera()
+    for azimuth in np.linspace(0.0, 2 * np.pi, 9)[:-1]:
+        assert ahead(_pixel_at(camera, 89.0, azimuth), camera).all()
+        assert not ahead(_pixel_at(camera, 91.0, azimuth), camera).any()
+    assert ahead_mask(lens_calibration("fisheye")) is None  # 131 deg across: its corners 82 deg off
+    assert ahead_mask(lens_calibration("vga")) is None  # a pinhole model looks ahead everywhere
+    mask = ahead_mask(camera)
+    assert mask[0, 0] == 0 and mask[514, 510] == 255 and 0.85 < (mask > 0).mean() < 0.95
+
+    rng = np.random.default_rng(0)
+    texture = (rng.random((64, 64)) * 255).astype(np.uint8)
+    image = np.kron(texture, np.ones((16, 16), np.uint8))  # corners everywhere
+    for scale in (1, 2):
+        front_end = KltFrontEnd(FeatureOptions(max_features=4000, detect_scale=scale), mask)
+        front_end.track(image)
+        born = front_end.detect(image).pixels
+        assert len(born) > 500 and ahead(born, camera).all()
+        everywhere = KltFrontEnd(FeatureOptions(max_features=4000, detect_scale=scale))
+        everywhere.track(image)
+        assert not ahead(everywhere.detect(image).pixels, camera).all()  # the mask is what keeps them out
+    # the view moves 60 px towards the top left corner: the tracks carried past 90 deg end
+    moved = np.full_like(image, image.mean())
+    moved[:-60, :-60] = image[60:, 60:]
+    tracks = front_end.track(moved)
+    assert len(tracks.ids) > 100 and ahead(tracks.pixels, camera).all()
+    assert not ahead(everywhere.track(moved).pixels, camera).all()

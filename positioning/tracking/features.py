@@ -23,6 +23,15 @@ from positioning.tracking.patch_alignment import PatchAligner
 from positioning.tracking.types import Tracks
 
 
+def view_at_scale(view_mask: np.ndarray, scale: int) -> np.ndarray:
+    """``view_mask`` reduced as ``find_corners`` reduces the image (``detect_scale``): a
+    block is usable only when all of it is."""
+    if scale <= 1:
+        return view_mask
+    h, w = view_mask.shape[0] // scale, view_mask.shape[1] // scale
+    return view_mask[: h * scale, : w * scale].reshape(h, scale, w, scale).min(axis=(1, 3))
+
+
 def find_corners(image: np.ndarray, count: int, options: FeatureOptions, mask: np.ndarray | None = None,
                  min_distance_px: int | None = None) -> np.ndarray:
     """Up to ``count`` Shi-Tomasi corners (K, 2), full-resolution pixels, found on the
@@ -40,8 +49,13 @@ def find_corners(image: np.ndarray, count: int, options: FeatureOptions, mask: n
 
 
 class KltFrontEnd:
-    def __init__(self, options: FeatureOptions | None = None) -> None:
+    """KLT tracks of Shi-Tomasi corners. ``view_mask`` ((height, width) uint8, 255 where
+    usable; ``camera_model.ahead_mask``): where corners may be born and tracks may go (a
+    fisheye's pixels more than 90 deg off the axis are not)."""
+
+    def __init__(self, options: FeatureOptions | None = None, view_mask: np.ndarray | None = None) -> None:
         self.options = options or FeatureOptions()
+        self.view_mask = view_mask
         alignment = self.options.alignment
         self._aligner = PatchAligner(alignment) if alignment is not None else None
         self.reset()
@@ -111,6 +125,9 @@ class KltFrontEnd:
             (status.ravel() == 1) & (back_status.ravel() == 1) & (fb_error <= o.max_fb_error_px)
             & (forward[:, 0] >= b) & (forward[:, 0] < w - b) & (forward[:, 1] >= b) & (forward[:, 1] < h - b)
         )
+        if self.view_mask is not None and self.view_mask.shape == image.shape:
+            rows, cols = np.round(forward[keep]).astype(int).T[::-1]
+            keep[keep] = self.view_mask[np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)] > 0
         self.pixels = forward.astype(np.float32)
         self._keep(keep)
         self._set_previous(image)
@@ -133,6 +150,8 @@ class KltFrontEnd:
         mask = np.zeros((image.shape[0] // s, image.shape[1] // s), np.uint8)
         border = max(1, o.border_px // s)
         mask[border:-border, border:-border] = 255
+        if self.view_mask is not None and self.view_mask.shape == image.shape:
+            mask &= view_at_scale(self.view_mask, s)
         radius = max(1, o.min_distance_px // s)
         for x, y in self.pixels / s:
             cv2.circle(mask, (int(round(x)), int(round(y))), radius, 0, -1)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import outline_pixels, project_normalised
+from positioning.camera_model import ahead_mask, outline_pixels, project_normalised
 from positioning.detection import DetectorOptions
 from positioning.estimator import FeatureState, FrameResult, FrameView, PoseEstimate, PoseState
 from positioning.geometry import Transform
@@ -77,7 +77,7 @@ class TrackingProcessor:
             tracker_options = dataclasses.replace(
                 tracker_options, init=dataclasses.replace(tracker_options.init, min_planes=planes))
         self.tracker = Tracker(calibration, tracker_options)
-        self.front_end = KltFrontEnd(self.options.tracker.features)
+        self.front_end = KltFrontEnd(self.options.tracker.features, ahead_mask(calibration))
         self.relocaliser = Relocaliser(calibration, self.options.tracker)
         self._target_corners = np.concatenate([t.corners for t in target.tags])
         self._frames_without_target = 0

@@ -18,9 +18,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera_info import CameraCalibration
-from positioning.camera_model import project, project_normalised, undistort
+from positioning.camera_model import ahead_mask, project, project_normalised, undistort
 from positioning.geometry import Transform
-from positioning.tracking.features import find_corners
+from positioning.tracking.features import find_corners, view_at_scale
 from positioning.tracking.map import Keyframe, Map
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import fit_pose, pnp_ransac
@@ -49,6 +49,7 @@ class Relocaliser:
     def __init__(self, calibration: CameraCalibration, options: TrackerOptions) -> None:
         self.calibration = calibration
         self.options = options
+        self._view_mask = ahead_mask(calibration)  # None: every pixel looks ahead
         self._orb = cv2.ORB_create(nfeatures=options.orb_features, patchSize=ORB_PATCH_PX,
                                    edgeThreshold=ORB_PATCH_PX)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -159,7 +160,8 @@ class Relocaliser:
         (6 px apart: the greedy spacing of the tracker's own detection would pick a
         different subset of corners in a different view)."""
         o = self.options
-        corners = find_corners(image, o.orb_features, o.features, min_distance_px=6)
+        mask = None if self._view_mask is None else view_at_scale(self._view_mask, max(1, o.features.detect_scale))
+        corners = find_corners(image, o.orb_features, o.features, mask, min_distance_px=6)
         keypoints, descriptors = self._describe(image, corners, np.arange(len(corners))) if len(corners) else ([], None)
         if descriptors is None or not keypoints:
             return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
