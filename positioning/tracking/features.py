@@ -56,6 +56,8 @@ class KltFrontEnd:
     def __init__(self, options: FeatureOptions | None = None, view_mask: np.ndarray | None = None) -> None:
         self.options = options or FeatureOptions()
         self.view_mask = view_mask
+        # the same at detect_scale, worked out once: detect() runs every frame
+        self._detect_view = None if view_mask is None else view_at_scale(view_mask, max(1, self.options.detect_scale))
         alignment = self.options.alignment
         self._aligner = PatchAligner(alignment) if alignment is not None else None
         self.reset()
@@ -150,8 +152,8 @@ class KltFrontEnd:
         mask = np.zeros((image.shape[0] // s, image.shape[1] // s), np.uint8)
         border = max(1, o.border_px // s)
         mask[border:-border, border:-border] = 255
-        if self.view_mask is not None and self.view_mask.shape == image.shape:
-            mask &= view_at_scale(self.view_mask, s)
+        if self._detect_view is not None and self.view_mask.shape == image.shape:
+            mask &= self._detect_view
         radius = max(1, o.min_distance_px // s)
         for x, y in self.pixels / s:
             cv2.circle(mask, (int(round(x)), int(round(y))), radius, 0, -1)

@@ -49,7 +49,9 @@ class Relocaliser:
     def __init__(self, calibration: CameraCalibration, options: TrackerOptions) -> None:
         self.calibration = calibration
         self.options = options
-        self._view_mask = ahead_mask(calibration)  # None: every pixel looks ahead
+        view = ahead_mask(calibration)  # None: every pixel looks ahead
+        # at the features' detect_scale, as find_corners takes it (worked out once)
+        self._view_mask = None if view is None else view_at_scale(view, max(1, options.features.detect_scale))
         self._orb = cv2.ORB_create(nfeatures=options.orb_features, patchSize=ORB_PATCH_PX,
                                    edgeThreshold=ORB_PATCH_PX)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -160,8 +162,7 @@ class Relocaliser:
         (6 px apart: the greedy spacing of the tracker's own detection would pick a
         different subset of corners in a different view)."""
         o = self.options
-        mask = None if self._view_mask is None else view_at_scale(self._view_mask, max(1, o.features.detect_scale))
-        corners = find_corners(image, o.orb_features, o.features, mask, min_distance_px=6)
+        corners = find_corners(image, o.orb_features, o.features, self._view_mask, min_distance_px=6)
         keypoints, descriptors = self._describe(image, corners, np.arange(len(corners))) if len(corners) else ([], None)
         if descriptors is None or not keypoints:
             return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
