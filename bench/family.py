@@ -19,7 +19,15 @@ flag is shown beside the figures, not taken off them.
 work) or ``full`` (40 seeds at 1280x1024). ``CUBELOC_BENCH_FAMILY_SEEDS=1,2,3`` picks seeds;
 ``CUBELOC_BENCH_BASELINE=DIR`` an existing checkout of the baseline instead of a worktree;
 ``CUBELOC_BENCH_FAMILY_BASELINE=0`` runs this tree alone; ``CUBELOC_BENCH_FAMILY_JOBS`` how many
-runs go at once (default: the cores).
+runs go at once (default: the cores); ``CUBELOC_BENCH_FAMILY_DRAWS`` how many draws a seed
+(default 3).
+
+**Draws.** One replay of a seed is one draw of its outcome: the tracker's path hangs on
+thresholds that a drifting map crosses either way, and the same frames replayed from the
+second frame, or with the target's poses moved by 0.1 um, lose or keep the map at other
+frames (docs/family.md). So each seed is replayed from frame 0, 1, ... (``cubeloc track
+--first``), each replay scored on its own frames, and the distributions are over all the
+runs, with each seed's spread beside them.
 
 ``python -m bench.family SEQUENCE [--first N --last N --every N]`` traces one rendered
 member frame by frame (status, error, claimed sigma, map, tracks, textured share).
@@ -62,16 +70,18 @@ def cached_case(root: Path, seed: int, resolution: str) -> Path:
     return out
 
 
-def seed_figures(sequence: Path, per_frame: list) -> dict:
-    """The per-seed figures of one run (see the module's docstring)."""
+def seed_figures(sequence: Path, per_frame: list, first: int = 0) -> dict:
+    """The per-seed figures of one run (see the module's docstring); a run replayed from
+    frame ``first`` is scored on the frames from there."""
     from fakes.family import make_case
     from positioning.evaluation import score_run
     from positioning.trajectory_io import read_tum
 
-    truth = read_tum(sequence / "groundtruth.tum")
+    truth = read_tum(sequence / "groundtruth.tum")[first:]
+    per_frame = per_frame[first:]
     described = json.loads((sequence / "family.json").read_text())
     score = score_run(truth, per_frame)
-    since = make_case(described["seed"], described["resolution"]).path_since_target()
+    since = make_case(described["seed"], described["resolution"]).path_since_target()[first:]
     errors = np.array([np.nan if e is None else
                        float(np.linalg.norm(e[0].T_world_camera.translation - t.T_world_camera.translation))
                        for e, t in zip(per_frame, truth, strict=True)])
@@ -88,18 +98,21 @@ def seed_figures(sequence: Path, per_frame: list) -> dict:
             "frames": score.frames}
 
 
-def run_tree(tree: Path, sequence: Path, work: Path, label: str) -> dict:
-    """One ``cubeloc track`` of ``sequence`` from ``tree``: its figures; a run that died is
-    scored as no pose at all, with ``crashed`` its last words."""
+def run_tree(tree: Path, sequence: Path, work: Path, label: str, first: int = 0) -> dict:
+    """One ``cubeloc track`` of ``sequence`` from ``tree``, replayed from frame ``first``:
+    its figures; a run that died is scored as no pose at all, with ``crashed`` its last
+    words."""
     from drivers.sequence import read_sequence_index
 
-    out = work / f"{sequence.name}-{label}.tum"
+    out = work / f"{sequence.name}-{label}-from-{first}.tum"
+    extra = ("--no-plot",) + (("--first", str(first)) if first else ())  # (a baseline tree may lack --first)
     try:
-        figures = _track(tree, sequence, out, poses=True, extra=("--no-plot",))
+        figures = _track(tree, sequence, out, poses=True, extra=extra)
     except RuntimeError as exc:
         nothing = [None] * len(read_sequence_index(sequence))
-        return {**seed_figures(sequence, nothing), "fps": float("nan"), "crashed": str(exc).splitlines()[-1][-160:]}
-    return {**seed_figures(sequence, read_poses(sequence, out.with_suffix(".jsonl"))), "fps": figures["fps"]}
+        return {**seed_figures(sequence, nothing, first), "fps": float("nan"),
+                "crashed": str(exc).splitlines()[-1][-160:]}
+    return {**seed_figures(sequence, read_poses(sequence, out.with_suffix(".jsonl")), first), "fps": figures["fps"]}
 
 
 def distribution(values: list[float], higher_is_better: bool = False) -> str:
@@ -113,9 +126,17 @@ def distribution(values: list[float], higher_is_better: bool = False) -> str:
     return f"{np.median(finite):.2f} / {np.percentile(finite, 90):.2f} / {np.max(finite):.2f}"
 
 
-def measure(seeds: list[int], which: str, root: Path, baseline: bool, jobs: int) -> list[tuple[int, str, dict, dict]]:
-    """(seed, tracker, figures, family.json) for each seed and each tree, ``jobs`` child
-    processes at once; renders what the cache lacks first."""
+def replays_from(tree: Path) -> bool:
+    """Whether ``tree``'s ``cubeloc track`` has ``--first`` (a tree older than the draws
+    replays each seed once, from its first frame)."""
+    return "--first" in (tree / "daemon" / "commands" / "track.py").read_text()
+
+
+def measure(seeds: list[int], which: str, root: Path, baseline: bool, jobs: int,
+            draws: int = 1) -> list[tuple[int, str, int, dict, dict]]:
+    """(seed, tracker, first frame, figures, family.json) for each seed, each tree and each
+    draw (the replay from frame 0, 1, ... ``draws - 1``), ``jobs`` child processes at once;
+    renders what the cache lacks first."""
     from concurrent.futures import ThreadPoolExecutor
 
     sequences = {seed: cached_case(root, seed, which) for seed in seeds}
@@ -123,21 +144,24 @@ def measure(seeds: list[int], which: str, root: Path, baseline: bool, jobs: int)
         work = Path(tmp)
         with previous_tree(BASELINE_COMMIT, work, os.environ.get("CUBELOC_BENCH_BASELINE")) as previous:
             trees = [("this tree", REPO)] + ([("baseline", previous)] if baseline and previous else [])
-            runs = [(seed, label, tree) for seed in seeds for label, tree in trees]
+            runs = [(seed, label, tree, first) for first in range(draws) for seed in seeds for label, tree in trees
+                    if first == 0 or replays_from(tree)]
             with ThreadPoolExecutor(max(1, jobs)) as pool:
-                figures = list(pool.map(lambda r: run_tree(r[2], sequences[r[0]], work, r[1].replace(" ", "-")),
+                figures = list(pool.map(lambda r: run_tree(r[2], sequences[r[0]], work, r[1].replace(" ", "-"), r[3]),
                                         runs))
-    return [(seed, label, f, json.loads((sequences[seed] / "family.json").read_text()))
-            for (seed, label, _), f in zip(runs, figures, strict=True)]
+    return [(seed, label, first, f, json.loads((sequences[seed] / "family.json").read_text()))
+            for (seed, label, _, first), f in zip(runs, figures, strict=True)]
 
 
-def report(results: list[tuple[int, str, dict, dict]], which: str, jobs: int) -> str:
-    """The bench's section: the distributions over seeds, then each seed."""
-    rows, by_tree = [], {}
-    for seed, label, f, described in results:
+def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: int) -> str:
+    """The bench's section: the distributions over seeds (and draws), the spread of each
+    seed over its draws, then each run."""
+    rows, by_tree, by_seed = [], {}, {}
+    for seed, label, first, f, described in sorted(results, key=lambda r: (r[0], r[1] != "this tree", r[2])):
         by_tree.setdefault(label, []).append(f)
+        by_seed.setdefault((seed, label), []).append(f)
         cam, motion = described["camera"], described["motion"]
-        rows.append([seed, label, f"{described['kind']} {described['room_m'][0]:.0f}x{described['room_m'][1]:.0f}",
+        rows.append([seed, label, first, f"{described['kind']} {described['room_m'][0]:.0f}x{described['room_m'][1]:.0f}",
                      f"{cam['hfov_deg']:.0f} deg, {cam['fps']:g} fps, lever {cam['lever_m']:.2f}",
                      f"{motion['speed_m_s']:.2f} m/s, {motion['turn_deg_s']:.0f} deg/s, {motion['seconds']:.0f} s",
                      ", ".join(described["unobservable"]) or "-",
@@ -145,7 +169,7 @@ def report(results: list[tuple[int, str, dict, dict]], which: str, jobs: int) ->
                      f"{f['per_metre_mm']:.1f}", f"{f['gap_s']:.1f}",
                      f"{100 * f['consistent']:.1f} % ({f['beyond_5']})", f"{f['fps']:.1f}",
                      "crashed" if f.get("crashed") else "yes" if f["meets"] else "no"])
-    table = markdown_table(["seed", "tracker", "scene", "camera", "motion", "unobservable", "coverage", "RMS mm",
+    table = markdown_table(["seed", "tracker", "from frame", "scene", "camera", "motion", "unobservable", "coverage", "RMS mm",
                             "max mm", "mm per m away", "longest gap s", "inside 3 sigma (beyond 5)", "fps",
                             "meets goals"], rows)
     summary_rows = []
@@ -167,12 +191,29 @@ def report(results: list[tuple[int, str, dict, dict]], which: str, jobs: int) ->
                               "inside 3 sigma % (median / p10 / worst)", "beyond 5 sigma", "fps (median / p10 / worst)"],
                              summary_rows)
     seeds = sorted({seed for seed, *_ in results})
+    draws = max(first for _, _, first, *_ in results) + 1
+    spread = ""
+    if draws > 1:
+        spread_rows = [[seed, label, len(group),
+                        f"{100 * min(f['coverage'] for f in group):.1f} - {100 * max(f['coverage'] for f in group):.1f}",
+                        f"{min(f['rms_mm'] for f in group):.1f} - {max(f['rms_mm'] for f in group):.1f}",
+                        f"{min(f['beyond_5'] for f in group)} - {max(f['beyond_5'] for f in group)}",
+                        sum(f["meets"] for f in group)]
+                       for (seed, label), group in sorted(by_seed.items(), key=lambda kv: (kv[0][0], kv[0][1] != "this tree"))]
+        spread = ("\nEach seed over its draws (lowest - highest):\n\n" + markdown_table(
+            ["seed", "tracker", "draws", "coverage %", "RMS mm", "beyond 5 sigma", "draws meeting the goals"],
+            spread_rows))
     return (f"{machine_line()}. Family set `{which}` (seeds {', '.join(map(str, seeds))}), `cubeloc track` per "
             f"seed, bundle adjustment in the frame loop, {jobs} runs at once (fps is each run's own, on a loaded "
-            f"machine); **baseline** = commit {BASELINE_COMMIT}. Errors are positions against the ground truth with "
+            f"machine); **baseline** = commit {BASELINE_COMMIT}. "
+            + (f"{draws} draws a seed: the replay from frame 0 to {draws - 1} (a tree without `cubeloc track "
+               "--first` replays from frame 0 only); each draw is scored on the frames it replayed. "
+               if draws > 1 else "")
+            + "Errors are positions against the ground truth with "
             "no alignment; RMS and max over the frames with a pose. Distributions are median / 90th percentile / "
-            "worst over the seeds; *observable* leaves out the seeds the generator flags (`blank_view`, "
-            "`rotation_on_axis`).\n\n" + summary + "\nPer seed:\n\n" + table)
+            f"worst over the {'runs (every seed and draw)' if draws > 1 else 'seeds'}; *observable* leaves out the "
+            "seeds the generator flags (`blank_view`, `rotation_on_axis`).\n\n" + summary + spread
+            + "\nPer run:\n\n" + table)
 
 
 def run() -> str:
@@ -181,7 +222,10 @@ def run() -> str:
     root = Path(os.environ.get("CUBELOC_BENCH_FAMILY", REPO / ".cache" / "family")).resolve()
     baseline = os.environ.get("CUBELOC_BENCH_FAMILY_BASELINE", "1") != "0"
     jobs = int(os.environ.get("CUBELOC_BENCH_FAMILY_JOBS", os.cpu_count() or 1))
-    return report(measure(seeds, which, root, baseline, jobs), which, jobs)
+    draws = int(os.environ.get("CUBELOC_BENCH_FAMILY_DRAWS", "3"))
+    if draws < 1:
+        raise SystemExit(f"CUBELOC_BENCH_FAMILY_DRAWS={draws}: at least 1")
+    return report(measure(seeds, which, root, baseline, jobs, draws), which, jobs)
 
 
 def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 1) -> None:

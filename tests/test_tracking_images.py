@@ -231,6 +231,16 @@ def test_track_command_writes_a_tum_trajectory_and_prints_the_error(tmp_path, cl
     assert len(poses) == 15
     ate = absolute_trajectory_error(read_tum(sequence / "groundtruth.tum"), poses)
     assert ate.rmse_m < 0.01  # one target pose per frame at half resolution, 2.3 m away
+    # --first 5: the replay starts at the sixth frame (each pose keeps its frame's stamp)
+    later = cli("track", "--target", str(sequence / "target.yaml"), "--calib", str(sequence / "camera.yaml"),
+                "--sequence", str(sequence), "--out", str(tmp_path / "later.tum"), "--first", "5", "--no-plot")
+    assert later.returncode == 0, later.stderr
+    assert "10 frames in" in later.stdout
+    assert [p.stamp_ns for p in read_tum(tmp_path / "later.tum")] == [p.stamp_ns for p in poses[5:]]
+    beyond = cli("track", "--target", str(sequence / "target.yaml"), "--calib", str(sequence / "camera.yaml"),
+                 "--sequence", str(sequence), "--out", str(tmp_path / "beyond.tum"), "--first", "15")
+    assert beyond.returncode == 2 and "--first 15" in beyond.stderr and "15 frames" in beyond.stderr
+    assert len(beyond.stderr.strip().splitlines()) == 1 and not (tmp_path / "beyond.tum").exists()
     missing = cli("track", "--target", str(sequence / "target.yaml"), "--calib", str(sequence / "camera.yaml"),
                   "--sequence", str(tmp_path / "nowhere"), "--out", str(out))
     assert missing.returncode == 2 and "Traceback" not in missing.stderr

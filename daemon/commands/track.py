@@ -54,6 +54,9 @@ def register(subparsers) -> None:
     parser.add_argument("--save-map", metavar="MAP", help="write the map at the end of the sequence (cubeloc.map/1)")
     parser.add_argument("--map-keyframes", type=int, default=None, metavar="N",
                         help="keyframes the map keeps (oldest dropped first); default 40, 400 with --save-map")
+    parser.add_argument("--first", type=int, default=0, metavar="N",
+                        help="replay from frame N (0-based) of the sequence; the frames before it are skipped "
+                             "and the ATE is over the frames replayed")
     parser.add_argument("--no-plot", action="store_true", help="do not write OUT.png (the trajectory and error plot)")
     parser.add_argument("--config", metavar="FILE",
                         help="a cubeloc.toml whose [frames] (the camera's mount) and [odometry] (its error "
@@ -83,6 +86,8 @@ def run(args) -> int:
     target = load_target(args.target)
     calibration = read_camera_info(args.calib)
     entries = read_sequence_index(args.sequence)
+    if args.first < 0 or args.first >= max(len(entries), 1):
+        raise InputFileError(f"--first {args.first}: {args.sequence} has {len(entries)} frames (0 to {len(entries) - 1})")
     out = Path(args.out)
     config = load_config(args.config) if args.config else Config()
     for path in (out, args.poses, args.save_map):  # (--mcap: McapRecording checks its own)
@@ -118,7 +123,7 @@ def run(args) -> int:
     states: Counter[str] = Counter()
     started = time.perf_counter()
     try:
-        for seq, entry in enumerate(entries):
+        for seq, entry in enumerate(entries[args.first:], start=args.first):
             try:
                 image = read_image(entry.path)
                 if image.shape != (calibration.height, calibration.width):
@@ -167,7 +172,8 @@ def run(args) -> int:
         for reason, count in stats.dropped.items():
             states[f"odometry dropped ({reason})"] = count
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
-    print(f"{len(entries)} frames in {elapsed:.1f} s ({len(entries) / max(elapsed, 1e-9):.1f} fps): {summary}")
+    replayed = len(entries) - args.first
+    print(f"{replayed} frames in {elapsed:.1f} s ({replayed / max(elapsed, 1e-9):.1f} fps): {summary}")
     written = [str(out)] + ([args.poses] if args.poses else []) + ([args.mcap] if args.mcap else [])
     print(f"wrote {len(poses)} poses to {', '.join(written)}")
     ate = None
@@ -181,7 +187,7 @@ def run(args) -> int:
 
         picture = out.with_suffix(".png")
         plot_track(picture, poses, pose_states, groundtruth, f"cubeloc track {Path(args.sequence).name}: "
-                   f"{len(poses)} poses of {len(entries)} frames",
+                   f"{len(poses)} poses of {replayed} frames",
                    None if ate is None else (ate.stamps_ns, ate.errors_m))
         print(f"plot: {picture}")
     if groundtruth is not None:
