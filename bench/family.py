@@ -205,7 +205,9 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
             spread_rows))
     return (f"{machine_line()}. Family set `{which}` (seeds {', '.join(map(str, seeds))}), `cubeloc track` per "
             f"seed, bundle adjustment in the frame loop, {jobs} runs at once (fps is each run's own, on a loaded "
-            f"machine); **baseline** = commit {BASELINE_COMMIT}. "
+            f"machine); " + (f"**baseline** = commit {BASELINE_COMMIT}. " if "baseline" in by_tree else
+                         f"this tree alone (`CUBELOC_BENCH_FAMILY_BASELINE=0`; the baseline, commit {BASELINE_COMMIT}, "
+                         "on the same frames: [family.md](family.md)). ")
             + (f"{draws} draws a seed: the replay from frame 0 to {draws - 1} (a tree without `cubeloc track "
                "--first` replays from frame 0 only); each draw is scored on the frames it replayed. "
                if draws > 1 else "")
@@ -266,13 +268,62 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
         processor.close()
 
 
+def target_recall(sequences: list[Path], every: int = 15) -> None:
+    """Print, per rendered family member and in all, on how many frames the AprilTag library
+    finds a tag of the cube over the full frame, for each way of searching it: decimation 3
+    then 2 when empty; with a pass at 2 blurred (the library's ``quadSigma`` 0.8); with a
+    pass at 1; with a pass at 1 and then at 1 blurred. Every ``every``-th frame where the
+    truth puts the cube's centre in the image (40 px from its edges) within 3.5 m."""
+    from calib.camera_info import read_camera_info
+    from drivers.sequence import read_image, read_sequence_index
+    from positioning.detection import TagDetector
+    from positioning.target import make_cube
+    from positioning.trajectory_io import read_tum
+
+    ids = set(make_cube().ids)
+    detector = TagDetector()
+    names = ("decimation 3, then 2", "+ 2 blurred", "+ 1", "+ 1, then 1 blurred")
+    total = np.zeros(len(names) + 1, int)
+    for sequence in sequences:
+        calibration = read_camera_info(sequence / "camera.yaml")
+        truth = read_tum(sequence / "groundtruth.tum")
+        entries = read_sequence_index(sequence)
+        counts = np.zeros(len(names) + 1, int)
+        for i in range(0, len(entries), every):
+            centre = truth[i].T_world_camera.inverse().apply(np.zeros((1, 3)))[0]
+            if centre[2] <= 0.05 or np.linalg.norm(centre) > 3.5:
+                continue
+            pixel = calibration.camera_matrix @ (centre / centre[2])
+            if not (40 <= pixel[0] <= calibration.width - 40 and 40 <= pixel[1] <= calibration.height - 40):
+                continue
+            image = read_image(entries[i].path)
+
+            def found(decimate: float, sigma: float = 0.0, image=image) -> bool:
+                return any(d.tag_id in ids for d in detector.detect(image, None, decimate, sigma))
+
+            plain = found(3.0) or found(2.0)
+            blurred, fine = found(2.0, 0.8), found(1.0)
+            counts += [1, plain, plain or blurred, plain or fine, plain or fine or found(1.0, 0.8)]
+        total += counts
+        print(f"{sequence.name}: {counts[0]} frames; " + ", ".join(f"{n} {c}" for n, c in zip(names, counts[1:], strict=True)),
+              flush=True)
+    print(f"all: {total[0]} frames; " + ", ".join(f"{n} {c}" for n, c in zip(names, total[1:], strict=True)))
+
+
 if __name__ == "__main__":
     import argparse
 
-    parser = argparse.ArgumentParser(description="trace the tracker frame by frame on a rendered family member")
-    parser.add_argument("sequence", type=Path, help="a family member's sequence directory (cubeloc simulate --family)")
+    parser = argparse.ArgumentParser(description="trace the tracker frame by frame on a rendered family member "
+                                                 "(or, with --recall, how often the cube in view is found)")
+    parser.add_argument("sequence", type=Path, nargs="+",
+                        help="a family member's sequence directory (cubeloc simulate --family); several with --recall")
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument("--last", type=int, default=None)
-    parser.add_argument("--every", type=int, default=1)
+    parser.add_argument("--every", type=int, default=None, help="every N-th frame (default 1; 15 with --recall)")
+    parser.add_argument("--recall", action="store_true",
+                        help="on how many frames with the cube in view each full-frame search finds it")
     arguments = parser.parse_args()
-    trace(arguments.sequence.resolve(), arguments.first, arguments.last, arguments.every)
+    if arguments.recall:
+        target_recall([s.resolve() for s in arguments.sequence], arguments.every or 15)
+    else:
+        trace(arguments.sequence[0].resolve(), arguments.first, arguments.last, arguments.every or 1)

@@ -150,19 +150,21 @@ class TagDetector:
         detector.setQuadThresholdParameters(quad)
         self._detector = detector
         self._decimate = o.quad_decimate
+        self._sigma = o.quad_sigma
 
     def detect(self, image: np.ndarray, roi: tuple[int, int, int, int] | None = None,
-               decimate: float | None = None) -> list[TagDetection]:
+               decimate: float | None = None, sigma: float | None = None) -> list[TagDetection]:
         """Decoded tags of ``image`` ((H, W) uint8), sorted by id, surest decode first.
 
         An id may appear more than once (two prints, a reflection); choosing is the
         caller's business. ``decimate`` overrides ``options.quad_decimate`` for this call
         (1 finds tags that decimation loses next to a bright background, at 4x the cost:
-        for small regions).
+        for small regions); ``sigma`` overrides ``options.quad_sigma`` (the library's
+        Gaussian blur of the decimated image before its quad search).
         """
         if image.ndim != 2 or image.dtype != np.uint8:
             raise ValueError(f"expected an (H, W) uint8 image, got {image.dtype} {image.shape}")
-        x0, y0 = 0, 0
+        original, x0, y0 = image, 0, 0
         if roi is not None:
             height, width = image.shape
             x0, y0 = max(0, int(roi[0])), max(0, int(roi[1]))
@@ -174,7 +176,12 @@ class TagDetector:
         image = np.ascontiguousarray(image)
         if self._aruco is not None:
             return self._detect_aruco(image, x0, y0)
-        self._set_decimate(decimate if decimate is not None else self.options.quad_decimate)
+        self._configure(decimate if decimate is not None else self.options.quad_decimate,
+                        sigma if sigma is not None else self.options.quad_sigma)
+        if self._sigma != 0 and self._decimate == 1 and np.shares_memory(image, original):
+            # Undecimated, the library blurs (or sharpens) the buffer it is given in place:
+            # it works on a copy, and the caller's image is left as it was.
+            image = image.copy()
         corner_buffer = [0.0] * 8
         found = []
         for raw in self._detector.detect(image):
@@ -199,13 +206,14 @@ class TagDetector:
         found.sort(key=lambda d: d.tag_id)
         return found
 
-    def _set_decimate(self, decimate: float) -> None:
+    def _configure(self, decimate: float, sigma: float) -> None:
         decimate = library_decimate(decimate)
-        if decimate != self._decimate:
+        if decimate != self._decimate or sigma != self._sigma:
             config = self._detector.getConfig()
             config.quadDecimate = float(decimate)
+            config.quadSigma = float(sigma)
             self._detector.setConfig(config)
-            self._decimate = decimate
+            self._decimate, self._sigma = decimate, sigma
 
     def close(self) -> None:
         """Free the library's detector now (it is also freed when collected)."""

@@ -82,6 +82,21 @@ def test_region_search_returns_full_image_pixels():
     assert detector.detect(image, roi=(-20, -20, 2000, 2000))[0].tag_id == 9
 
 
+def test_a_blurred_search_leaves_the_callers_image_as_it_was():
+    """Undecimated with a blur (or a sharpening), the AprilTag library works on the buffer
+    it is given in place; the detector hands it a copy, so the same image searched again,
+    or by the next stage, is the camera's."""
+    detector = TagDetector()
+    image, _ = marker_scene(4, 0)
+    image = cv2.add(image, np.random.default_rng(0).integers(0, 30, image.shape, dtype=np.uint8))
+    before = image.copy()
+    for decimate, sigma in ((1.0, 0.8), (1.0, -0.8), (2.0, 0.8)):
+        assert [d.tag_id for d in detector.detect(image, None, decimate, sigma)] == [4]
+        assert np.array_equal(image, before), (decimate, sigma)
+    assert [d.tag_id for d in detector.detect(image, (40, 20, 280, 260), 1.0, 0.8)] == [4]  # (a crop is a copy)
+    assert np.array_equal(image, before)
+
+
 def test_rejects_images_it_cannot_read():
     detector = TagDetector()
     with pytest.raises(ValueError, match="uint8"):
