@@ -65,11 +65,32 @@ def pnp_ransac(obj: np.ndarray, xn: np.ndarray, threshold: float, iterations: in
     return rvec, tvec, inliers.ravel()
 
 
+def deleted_residuals(T_camera_world: Transform, points_world: np.ndarray, xn: np.ndarray, fx: float
+                      ) -> np.ndarray:
+    """Each observation's reprojection error (px) as the least-squares pose fit to all of
+    them would leave it without that observation: ``(I - H_i)^-1 r_i``, ``H_i`` its 2 x 2
+    block of the fit's hat matrix (its leverage). A point whose leverage is near 1 is fit
+    whatever it says, so its own residual tells nothing of it; its deleted residual does."""
+    residual, jac, _ = _blocks(T_camera_world.rotation, T_camera_world.translation, points_world, xn, fx)
+    flat = jac.reshape(-1, 6)
+    normal = flat.T @ flat
+    if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
+        return np.linalg.norm(residual, axis=1)
+    hat = np.einsum("nij,jk,nlk->nil", jac, np.linalg.inv(normal), jac)  # (N, 2, 2)
+    keep = np.eye(2)[None] - hat
+    det = keep[:, 0, 0] * keep[:, 1, 1] - keep[:, 0, 1] * keep[:, 1, 0]
+    deleted = np.full(len(residual), np.inf)
+    ok = det > 1e-9
+    deleted[ok] = np.linalg.norm(np.linalg.solve(keep[ok], residual[ok][:, :, None])[:, :, 0], axis=1)
+    return deleted
+
+
 def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Transform | None,
                   o: TrackerOptions, fx: float) -> tuple[Transform | None, int, np.ndarray, float, np.ndarray | None]:
     """The tracker's pose from the tracks with map points (``xn`` their normalised
-    coordinates): PnP with RANSAC, refined with Levenberg-Marquardt on the inliers, refused
-    beyond ``max_motion_*`` from ``prediction``. Returns (pose or None, inliers, outlier
+    coordinates): PnP with RANSAC, refined with Levenberg-Marquardt on the inliers (each
+    re-selected by its deleted residual, ``deleted_residuals``), refused beyond
+    ``max_motion_*`` from ``prediction``. Returns (pose or None, inliers, outlier
     ids, RMS px, 6x6 covariance from the inliers' reprojection errors)."""
     has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
     reference = has & world_map.is_reference(tracks.ids)  # a loaded map's: they alone when enough
@@ -94,6 +115,10 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
         err = np.linalg.norm(proj - img, axis=1) * fx
         # Tracks that drifted along an edge or sit on an occlusion boundary err by a few
         # tenths of a pixel: a robust (MAD) threshold keeps them out of the refinement.
+        # Each inlier is judged by its deleted residual (as if the fit had been made
+        # without it): a point the pose bent to fit (near the camera, on a passer-by) has
+        # a small residual of its own but a large deleted one.
+        err[mask] = deleted_residuals(T_c_w, obj[mask], img[mask], fx)
         spread = 3.0 * 1.4826 * float(np.median(err[mask])) if mask.any() else o.pnp_reproj_px
         mask = (z > 0) & (err <= min(o.pnp_reproj_px, max(o.pnp_min_reproj_px, spread)))
         if mask.sum() < o.min_pnp_inliers:
