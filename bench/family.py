@@ -35,6 +35,7 @@ member frame by frame (status, error, claimed sigma, map, tracks, textured share
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -142,8 +143,11 @@ def measure(seeds: list[int], which: str, root: Path, baseline: bool, jobs: int,
     sequences = {seed: cached_case(root, seed, which) for seed in seeds}
     with tempfile.TemporaryDirectory(prefix="cubeloc-bench-family-") as tmp:
         work = Path(tmp)
-        with previous_tree(BASELINE_COMMIT, work, os.environ.get("CUBELOC_BENCH_BASELINE")) as previous:
-            trees = [("this tree", REPO)] + ([("baseline", previous)] if baseline and previous else [])
+        # the baseline's checkout only when it runs
+        checkout = previous_tree(BASELINE_COMMIT, work, os.environ.get("CUBELOC_BENCH_BASELINE")) if baseline \
+            else contextlib.nullcontext(None)
+        with checkout as previous:
+            trees = [("this tree", REPO)] + ([("baseline", previous)] if previous else [])
             runs = [(seed, label, tree, first) for first in range(draws) for seed in seeds for label, tree in trees
                     if first == 0 or replays_from(tree)]
             with ThreadPoolExecutor(max(1, jobs)) as pool:
