@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+import pytest
 
 from positioning.camera_model import project_normalised
 from positioning.geometry import Transform
-from positioning.tracking.pose_fit import Rays, fit_pose
+from positioning.tracking.map import Map
+from positioning.tracking.options import TrackerOptions
+from positioning.tracking.pose_fit import (
+    Rays,
+    deleted_residuals,
+    fit_pose,
+    pnp_ransac,
+    pose_from_map,
+)
+from positioning.tracking.types import Tracks
 
 FX = 1000.0
 SIGMA_PX = 0.2
@@ -86,11 +97,6 @@ def test_ransac_pnp_on_degenerate_points_is_no_pose_not_an_exception():
     """Map points on a line (a map gone bad): OpenCV's SQPnP asserts instead of failing
     (cubeloc track died of it on a family seed); ``pnp_ransac`` answers None, and a good
     set still gives its pose."""
-    import cv2
-    import pytest
-
-    from positioning.tracking.pose_fit import pnp_ransac
-
     rng = np.random.default_rng(0)
     line = np.outer(np.linspace(1.0, 2.0, 25), [0.1, 0.2, 1.0])
     xn = line[:, :2] / line[:, 2:3] + rng.normal(0, 1e-3, (25, 2))
@@ -108,13 +114,6 @@ def test_a_point_the_pose_bends_to_fit_is_judged_by_its_deleted_residual():
     slid 20 px with a passer-by. Least squares fit the near point almost exactly (its
     leverage is near 1), so its own residual is small and it stayed an inlier: 4.4 mm off,
     claiming 1 mm. Its deleted residual (the fit without it) is the 20 px it slid."""
-    import cv2
-
-    from positioning.tracking.map import Map
-    from positioning.tracking.options import TrackerOptions
-    from positioning.tracking.pose_fit import deleted_residuals, pose_from_map
-    from positioning.tracking.types import Tracks
-
     fx = 833.0
     for seed in (1, 2):
         rng = np.random.default_rng(seed)
