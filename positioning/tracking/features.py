@@ -148,7 +148,7 @@ class KltFrontEnd:
             self._set_previous(image)
             return self.tracks
         guided = guesses is not None and np.shape(guesses) == (len(self.ids), 2)
-        start = np.asarray(guesses, np.float32).reshape(-1, 1, 2).copy() if guided else None
+        start = np.asarray(guesses, np.float32).reshape(-1, 1, 2) if guided else None  # _flow copies it
         forward, keep = self._flow(self._previous, image, start)
         # The tracks KLT kept measure any change of brightness (an auto-exposure step):
         # with one, both images at the darker one's brightness (no pixel saturates by
