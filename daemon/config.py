@@ -230,11 +230,20 @@ class Ros2Topics(Section):
     odometry: str = "cubeloc/odometry"  # nav_msgs/msg/Odometry, the same pose (the twist is not measured)
     tf: str = "tf"  # tf2_msgs/msg/TFMessage, map -> base_link, with publish_tf only
     camera_info: str = "cubeloc/camera_info"  # sensor_msgs/msg/CameraInfo, once, transient local
+    # diagnostic_msgs/msg/DiagnosticArray from each status (1 Hz): OK while the camera or the
+    # target measures the pose, WARN held or bridged or before the first pose, ERROR lost or
+    # without a camera; empty: none
+    diagnostics: str = "/diagnostics"
 
     @field_validator("pose", "odometry", "tf", "camera_info")
     @classmethod
     def _topic(cls, value: str) -> str:
         return _ros_name(value, "topic name")
+
+    @field_validator("diagnostics")
+    @classmethod
+    def _optional_topic(cls, value: str) -> str:
+        return value and _ros_name(value, "topic name")
 
 
 class Ros2Config(Section):

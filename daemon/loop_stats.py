@@ -13,6 +13,8 @@ import time
 
 import numpy as np
 
+from positioning.estimator import PoseSource
+
 FPS_WINDOW_S = 3.0
 LATENCY_WINDOW = 500
 
@@ -31,25 +33,44 @@ class LoopStats:
         self.last_tags: tuple[int, ...] = ()
         self.last_seq = -1
         # Time without a pose once there has been one (the tracker lost, the lens covered),
-        # and frames held on rays (orientation measured, position by the motion model).
+        # and the poses by what measured them (held: orientation from rays, position by the
+        # motion model; odometry: the wheels alone).
         self._had_pose = False
         self._last_frame_at: float | None = None
         self._lost_since: float | None = None
         self.lost_s = 0.0
-        self.held_frames = 0
+        self.poses_by_source: collections.Counter[str] = collections.Counter()
+        self.last_source: PoseSource | None = None
         # Per-second summary counters (reset by ``take_summary``).
         self._summary = collections.Counter()
 
+    def source_now(self) -> str | None:
+        """The last frame's pose source (None: that frame had no pose)."""
+        with self._lock:
+            return None if self.last_source is None else self.last_source.value
+
+    def source_counts(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.poses_by_source)
+
+    @property
+    def held_frames(self) -> int:
+        """Frames whose pose was held on rays (``PoseSource.HELD``)."""
+        with self._lock:
+            return self.poses_by_source[PoseSource.HELD.value]
+
     def record_frame(self, seq: int, status: str, detail: str, tags: tuple[int, ...],
-                     has_pose: bool = False) -> None:
+                     source: PoseSource | None = None) -> None:
+        """One processed frame; ``source`` is its published pose's, None when it has none."""
         now = time.monotonic()
         with self._lock:
-            if self._had_pose and not has_pose and self._last_frame_at is not None:
+            if self._had_pose and source is None and self._last_frame_at is not None:
                 self.lost_s += now - self._last_frame_at
                 self._lost_since = self._lost_since if self._lost_since is not None else self._last_frame_at
-            if has_pose:
+            if source is not None:
                 self._had_pose, self._lost_since = True, None
-                self.held_frames += bool(detail) and detail.startswith("held")
+                self.poses_by_source[source.value] += 1
+            self.last_source = source
             self._last_frame_at = now
             self.frames += 1
             self.last_seq = seq

@@ -1,5 +1,9 @@
-"""The wire payloads: ``cubeloc.pose/1`` (world -> camera), ``cubeloc.pose/2`` (map ->
+"""The wire payloads: ``cubeloc.pose/3`` (world -> camera), ``cubeloc.pose/4`` (map ->
 base_link, with ``[frames]``) and ``cubeloc.status/1`` (JSON, UTF-8).
+
+/3 and /4 are /1 and /2 with two more fields: ``source`` (what measured the pose:
+``positioning.estimator.PoseSource``) and ``latency_ns`` (publish time minus the capture
+stamp, both on the host's CLOCK_REALTIME; null where the pose is not published live).
 
 The pose schema is a user-facing contract (docs: interfaces.md). A pose is checked before
 it is encoded: a NaN, an infinity or a non-unit quaternion never reaches the wire; such a
@@ -19,8 +23,8 @@ from positioning.estimator import PoseEstimate
 from positioning.frames import RobotFrames
 from positioning.geometry import Transform
 
-POSE_SCHEMA = "cubeloc.pose/1"
-BASE_POSE_SCHEMA = "cubeloc.pose/2"  # map -> base_link: /1's fields and camera_frame_id
+POSE_SCHEMA = "cubeloc.pose/3"  # world -> camera: /1's fields, source and latency_ns
+BASE_POSE_SCHEMA = "cubeloc.pose/4"  # map -> base_link: /3's fields and camera_frame_id (/2 + the same two)
 STATUS_SCHEMA = "cubeloc.status/1"
 
 # A camera further than this from the world origin is a solver failure, not a pose.
@@ -40,25 +44,28 @@ def _finite_list(values: np.ndarray, what: str) -> list[float]:
     return [float(v) for v in array]
 
 
-def pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate) -> dict[str, Any]:
-    """The ``cubeloc.pose/1`` document for one frame (world -> camera), validated."""
+def pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, published_ns: int | None = None
+                 ) -> dict[str, Any]:
+    """The ``cubeloc.pose/3`` document for one frame (world -> camera), validated;
+    ``published_ns`` is the host's CLOCK_REALTIME as it goes out (None: not live)."""
     return _pose_document(POSE_SCHEMA, seq, stamp_ns, estimate, estimate.T_world_camera, estimate.covariance,
-                          "world", "camera")
+                          "world", "camera", published_ns)
 
 
-def base_pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames) -> dict[str, Any]:
-    """The ``cubeloc.pose/2`` document: the robot's base in the map (``map`` -> ``base_link``
+def base_pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames,
+                      published_ns: int | None = None) -> dict[str, Any]:
+    """The ``cubeloc.pose/4`` document: the robot's base in the map (``map`` -> ``base_link``
     under ``frames``' names), the same ``seq`` and ``stamp_ns`` as the camera's pose, and
-    ``camera_frame_id`` naming the frame the vision measured. Validated as /1."""
+    ``camera_frame_id`` naming the frame the vision measured. Validated as /3."""
     transform, covariance = frames.base_in_map(estimate.T_world_camera, estimate.covariance)
     document = _pose_document(BASE_POSE_SCHEMA, seq, stamp_ns, estimate, transform, covariance,
-                              frames.map_frame, frames.base_frame, max_position_m=MAX_MAP_POSITION_M)
+                              frames.map_frame, frames.base_frame, published_ns, max_position_m=MAX_MAP_POSITION_M)
     document["camera_frame_id"] = frames.camera_frame
     return document
 
 
 def _pose_document(schema: str, seq: int, stamp_ns: int, estimate: PoseEstimate, transform: Transform,
-                   covariance: np.ndarray | None, frame_id: str, child_frame_id: str,
+                   covariance: np.ndarray | None, frame_id: str, child_frame_id: str, published_ns: int | None,
                    max_position_m: float = MAX_POSITION_M) -> dict[str, Any]:
     if stamp_ns <= 0:
         raise UnpublishablePose(f"stamp_ns {stamp_ns} is not a capture time")
@@ -94,9 +101,11 @@ def _pose_document(schema: str, seq: int, stamp_ns: int, estimate: PoseEstimate,
         "position": position,
         "orientation": orientation,
         "state": estimate.state.value,
+        "source": estimate.source.value,
         "planes": int(estimate.planes),
         "reproj_rms_px": round(rms, 4),
         "covariance": values,
+        "latency_ns": None if published_ns is None else int(published_ns) - int(stamp_ns),
     }
 
 
@@ -105,12 +114,13 @@ def encode(document: dict[str, Any]) -> bytes:
     return json.dumps(document, allow_nan=False, separators=(",", ":")).encode("utf-8")
 
 
-def pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate) -> bytes:
-    return encode(pose_payload(seq, stamp_ns, estimate))
+def pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, published_ns: int | None = None) -> bytes:
+    return encode(pose_payload(seq, stamp_ns, estimate, published_ns))
 
 
-def base_pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames) -> bytes:
-    return encode(base_pose_payload(seq, stamp_ns, estimate, frames))
+def base_pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames,
+                      published_ns: int | None = None) -> bytes:
+    return encode(base_pose_payload(seq, stamp_ns, estimate, frames, published_ns))
 
 
 @dataclass(frozen=True)

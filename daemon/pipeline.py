@@ -3,8 +3,8 @@
 The loop knows positioning only through ``positioning.estimator.FrameProcessor``: the
 tracker (``mode = "tracker"``, the default) or the single-frame target pose (``"target"``);
 both see the target through the same ``positioning.observer.TargetObserver``.
-A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/1``,
-then handed to the pose sinks (the robot's base in the map as ``cubeloc.pose/2`` with
+A frame whose result carries a trustworthy estimate is published as ``cubeloc.pose/3``,
+then handed to the pose sinks (the robot's base in the map as ``cubeloc.pose/4`` with
 ``[frames]``, the ROS 2 messages with ``[ros2]``); any other frame publishes nothing, and
 its status word shows on ``status``.
 
@@ -189,7 +189,7 @@ class ProcessingLoop:
             self._stats.record_frame(item.seq, result.status, result.detail, result.tags_seen)
             return
         try:
-            payload = pose_message(item.seq, frame.stamp_ns, result.estimate)
+            payload = pose_message(item.seq, frame.stamp_ns, result.estimate, time.time_ns())
         except UnpublishablePose as exc:
             bound.warning("pose not published", reason=str(exc))
             self._stats.record_rejected()
@@ -209,7 +209,7 @@ class ProcessingLoop:
         self._stats.record_pose((time.monotonic_ns() - item.received_monotonic_ns) / 1e6)
         # On status, a frame with a pose shows the pose's state ("target", "tracking"...).
         self._stats.record_frame(item.seq, result.estimate.state.value, result.detail, result.tags_seen,
-                                 has_pose=True)
+                                 result.estimate.source)
 
     def _log_summary(self) -> None:
         summary = self._stats.take_summary()

@@ -1,8 +1,8 @@
 """The daemon's Zenoh face: the keys of interfaces.md under ``cubeloc/<name>/``.
 
 ========================  ============  ==============================================
-``pose``                  publication   ``cubeloc.pose/1``, every frame with a pose
-``base_pose``             publication   ``cubeloc.pose/2`` (map -> base_link), with ``[frames]``
+``pose``                  publication   ``cubeloc.pose/3``, every frame with a pose
+``base_pose``             publication   ``cubeloc.pose/4`` (map -> base_link), with ``[frames]``
 ``status``                publication   ``cubeloc.status/1``, once a second
 ``alive``                 liveliness    present while the daemon runs
 ``calibration``           queryable     the camera_info YAML in use

@@ -33,7 +33,8 @@ import numpy as np
 import structlog
 
 from calib.camera_info import CameraCalibration
-from positioning.estimator import PoseEstimate
+from daemon.messages import StatusReport
+from positioning.estimator import PoseEstimate, PoseSource
 from positioning.frames import RobotFrames
 
 log = structlog.get_logger()
@@ -47,6 +48,28 @@ POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+# diagnostic_msgs/msg/DiagnosticStatus levels
+OK, WARN, ERROR = 0, 1, 2
+
+
+def diagnostic_level(report: StatusReport) -> tuple[int, str]:
+    """The level of a status report on ``/diagnostics``, and why: ERROR without a camera
+    or lost (no pose, after there was one); WARN held on rays, bridged by the wheels, or
+    no pose yet (waiting for the target at the start); OK while the target, the map or a
+    relocalisation measures the pose."""
+    camera = report.camera
+    if camera.state != "streaming":
+        return ERROR, f"camera {camera.state}" + (f": {camera.detail}" if camera.detail else "")
+    source = report.extra.get("source")
+    if source in (PoseSource.HELD.value, PoseSource.ODOMETRY.value):
+        return WARN, f"pose {source}" + (f" ({report.detail})" if report.detail else "")
+    if source is not None:
+        return OK, f"pose from the {source}"
+    why = f"{report.state}" + (f": {report.detail}" if report.detail else "")
+    if report.extra.get("lost_now_s", 0.0) > 0.0:
+        return ERROR, f"no pose for {report.extra['lost_now_s']:.1f} s ({why})"
+    return WARN, f"no pose yet ({why})"
 
 
 def typestore(distro: str):
@@ -118,11 +141,14 @@ class Ros2Publisher:
         self._frames = frames
         self.session_id = str(session.info.zid())
         domain, namespace, node = config.domain_id, config.namespace, config.node_name
+        self._node_name = node
         self.node_token = node_token(domain, self.session_id, 0, namespace, node)
         wanted = [("pose", POSE_TYPE, config.topics.pose), ("odometry", ODOMETRY_TYPE, config.topics.odometry),
                   ("camera_info", CAMERA_INFO_TYPE, config.topics.camera_info)]
         if config.publish_tf:
             wanted.append(("tf", TF_TYPE, config.topics.tf))
+        if config.topics.diagnostics:
+            wanted.append(("diagnostics", DIAGNOSTICS_TYPE, config.topics.diagnostics))
         self.topics: dict[str, RosTopic] = {}
         for entity_id, (role, typename, name) in enumerate(wanted, start=1):
             latched = role == "camera_info"
@@ -185,6 +211,23 @@ class Ros2Publisher:
                 transform=moved)])
         return out
 
+    def diagnostics(self, report: StatusReport):
+        """The DiagnosticArray of one status report: one status, named after the node."""
+        level, message = diagnostic_level(report)
+        latency = report.latency_ms or {}
+        values = {"state": report.state, "source": report.extra.get("source") or "", "fps": f"{report.fps:.1f}",
+                  "poses": str(report.poses), "dropped_frames": str(report.dropped_frames),
+                  "latency_p50_ms": "" if latency.get("p50") is None else f"{latency['p50']:.1f}",
+                  "latency_p99_ms": "" if latency.get("p99") is None else f"{latency['p99']:.1f}",
+                  "held_frames": str(report.extra.get("held_frames", 0)),
+                  "lost_now_s": str(report.extra.get("lost_now_s", 0.0)), "camera": report.camera.state,
+                  "version": report.version}
+        camera = report.camera
+        status = self._msg("diagnostic_msgs/msg/DiagnosticStatus", level=level, name=f"{self._node_name}: pose",
+                           message=message, hardware_id=" ".join(p for p in (camera.model, camera.serial) if p),
+                           values=[self._msg("diagnostic_msgs/msg/KeyValue", key=k, value=v) for k, v in values.items()])
+        return self._msg(DIAGNOSTICS_TYPE, header=self._header(report.stamp_ns, ""), status=[status])
+
     def _camera_info(self, calibration: CameraCalibration, stamp_ns: int):
         k = np.asarray(calibration.camera_matrix, np.float64)
         projection = np.zeros((3, 4))
@@ -219,6 +262,11 @@ class Ros2Publisher:
             return
         for role, message in self.messages(stamp_ns, estimate).items():
             self._put(role, message)
+
+    def publish_diagnostics(self, report: StatusReport) -> None:
+        """``report`` on ``/diagnostics`` (with ``topics.diagnostics`` set)."""
+        if not self._closed and "diagnostics" in self.topics:
+            self._put("diagnostics", self.diagnostics(report))
 
     def close(self) -> None:
         if self._closed:

@@ -170,7 +170,7 @@ class Daemon:
             frames = config.frames.robot_frames()
 
             def base_pose(seq: int, stamp_ns: int, estimate) -> None:
-                self._publisher.publish_base_pose(base_pose_message(seq, stamp_ns, estimate, frames))
+                self._publisher.publish_base_pose(base_pose_message(seq, stamp_ns, estimate, frames, time.time_ns()))
 
             sinks.append(base_pose)
         if config.ros2.enabled:
@@ -261,9 +261,11 @@ class Daemon:
             version=__version__,
             tags_seen=stats.last_tags,
             extra={"processor_errors": stats.processor_errors, "faults": self.capture.faults(),
-                   # time without a pose since the first one, and now; frames held on rays
+                   # time without a pose since the first one, and now; frames held on rays;
+                   # the last frame's pose source (null: no pose) and the poses by source
                    "lost_s": round(stats.lost_s, 2), "lost_now_s": round(stats.lost_now_s(), 2),
-                   "held_frames": stats.held_frames, "reload": dict(self._reloads),
+                   "held_frames": stats.held_frames, "source": stats.source_now(),
+                   "poses_by_source": stats.source_counts(), "reload": dict(self._reloads),
                    **({"odometry": self.odometry.report()} if self.odometry is not None else {}),
                    **({"foxglove": self._viewer.report()} if self._viewer is not None else {}),
                    **({"map": self.map_store.report()} if self.map_store is not None else {})},
@@ -331,6 +333,11 @@ class Daemon:
             self._publisher.publish_status(document)
         if self._viewer is not None:
             self._viewer.status(document)
+        if self._ros2 is not None:
+            try:
+                self._ros2.publish_diagnostics(report)
+            except Exception:  # a ROS side that fails costs its own output, never the status
+                log.exception("ros2 diagnostics not published")
         self.notifier.status(f"{report.state}, {report.fps:.1f} fps, camera {report.camera.state}")
         return report
 

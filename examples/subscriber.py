@@ -17,12 +17,16 @@ time of the frame in seconds, the camera centre in the world (target) frame in m
 and the camera's orientation (rotation world <- camera, x right, y down, z forward) as a
 unit quaternion. Status changes of the daemon go to stderr.
 
-The payload (JSON, schema ``cubeloc.pose/1``)::
+The payload (JSON, schema ``cubeloc.pose/3``)::
 
-    {"schema": "cubeloc.pose/1", "seq": 42, "stamp_ns": 1790000000000000000,
+    {"schema": "cubeloc.pose/3", "seq": 42, "stamp_ns": 1790000000000000000,
      "frame_id": "world", "child_frame_id": "camera",
      "position": [x, y, z], "orientation": [qx, qy, qz, qw],
-     "state": "target", "planes": 3, "reproj_rms_px": 0.21, "covariance": null}
+     "state": "target", "source": "target", "planes": 3, "reproj_rms_px": 0.21,
+     "covariance": [36 numbers], "latency_ns": 31250000}
+
+``source`` says what measured the pose (target, map, held, odometry, relocalised: the
+README's "Zenoh" section); this example reads only the fields every schema version has.
 """
 
 import argparse

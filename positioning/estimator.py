@@ -21,11 +21,32 @@ from positioning.geometry import Transform
 
 
 class PoseState(str, enum.Enum):
-    """Where a published pose came from (the ``state`` field of ``cubeloc.pose/1``)."""
+    """How a published pose stands to the ones before it (the ``state`` field of the pose
+    messages); what measured it is its ``PoseSource``."""
 
     TARGET = "target"  # from the target alone, this frame
-    TRACKING = "tracking"  # from the tracker's map, the target not (fully) in view
+    TRACKING = "tracking"  # from the tracker, the target not (fully) in view
     RELOCALISED = "relocalised"  # the first pose after a visible correction (a jump)
+
+
+class PoseSource(str, enum.Enum):
+    """What measured a published pose (the ``source`` field of ``cubeloc.pose/3`` and
+    ``/4``): a fusion filter weighs a held or odometry pose differently from a measured one,
+    though its covariance already says how far it may be off."""
+
+    TARGET = "target"  # the target's pose in this frame (with the map's points in view when fused)
+    MAP = "map"  # the map's points in view (PnP), with the wheels' motion when there is odometry
+    # too few map points in view: the orientation from the tracks' rays, the position from
+    # the points left, the wheels or the motion model (for at most max_hold_s; nothing in
+    # view: the motion model alone for at most max_coast_s)
+    HELD = "held"
+    ODOMETRY = "odometry"  # lost: the wheels' motion since the last camera pose ("bridged")
+    RELOCALISED = "relocalised"  # this image matched to the map's keyframes
+
+
+# The source a pose has when its maker names none: what its state implies.
+_SOURCE_OF_STATE = {PoseState.TARGET: PoseSource.TARGET, PoseState.TRACKING: PoseSource.MAP,
+                    PoseState.RELOCALISED: PoseSource.RELOCALISED}
 
 
 @dataclass(frozen=True)
@@ -42,6 +63,11 @@ class PoseEstimate:
     tag_ids: tuple[int, ...]
     reproj_rms_px: float
     covariance: np.ndarray | None = None  # (6, 6)
+    source: PoseSource | None = None  # None: the one ``state`` implies (target, map, relocalised)
+
+    def __post_init__(self) -> None:
+        if self.source is None:
+            object.__setattr__(self, "source", _SOURCE_OF_STATE[self.state])
 
 
 class FeatureState(enum.IntEnum):

@@ -6,12 +6,13 @@ Shared by the test modules (``from ros2_msgs import decode``, like helpers)."""
 from dataclasses import dataclass
 
 from pycdr2 import IdlStruct
-from pycdr2.types import array, float64, int32, sequence, uint32
+from pycdr2.types import array, float64, int32, sequence, uint8, uint32
 
 POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 
 
 @dataclass
@@ -121,10 +122,32 @@ class CameraInfo(IdlStruct, typename=CAMERA_INFO_TYPE):
     roi: RegionOfInterest
 
 
-DECODERS = {"pose": PoseWithCovarianceStamped, "odometry": Odometry, "tf": TFMessage, "camera_info": CameraInfo}
+@dataclass
+class KeyValue(IdlStruct, typename="diagnostic_msgs/msg/KeyValue"):
+    key: str
+    value: str
+
+
+@dataclass
+class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs/msg/DiagnosticStatus"):
+    level: uint8  # byte: OK 0, WARN 1, ERROR 2, STALE 3
+    name: str
+    message: str
+    hardware_id: str
+    values: sequence[KeyValue]
+
+
+@dataclass
+class DiagnosticArray(IdlStruct, typename=DIAGNOSTICS_TYPE):
+    header: Header
+    status: sequence[DiagnosticStatus]
+
+
+DECODERS = {"pose": PoseWithCovarianceStamped, "odometry": Odometry, "tf": TFMessage, "camera_info": CameraInfo,
+            "diagnostics": DiagnosticArray}
 
 
 def decode(payload: bytes, role: str):
-    """A payload of ``role`` (pose, odometry, tf, camera_info): CDR, little endian."""
+    """A payload of ``role`` (pose, odometry, tf, camera_info, diagnostics): CDR, little endian."""
     assert payload[:4] == b"\x00\x01\x00\x00", payload[:4]
     return DECODERS[role].deserialize(payload)

@@ -133,10 +133,13 @@ def test_daemon_publishes_poses_status_and_answers_queries(tmp_path, cube_image,
     try:
         assert listener.wait_for(lambda: len(listener.poses) >= 5), listener.status[-1:]
         pose = listener.poses[-1]
-        assert pose["schema"] == "cubeloc.pose/1" and pose["state"] == "target" and pose["planes"] == 3
+        assert pose["schema"] == "cubeloc.pose/3" and pose["state"] == "target" and pose["planes"] == 3
         assert np.linalg.norm(np.array(pose["position"]) - CAMERA_POSITION) < 0.005
         stamps = {entry[1] for entry in script.log if isinstance(entry, tuple)}
         assert all(p["stamp_ns"] in stamps for p in listener.poses)  # the capture time, not publish time
+        # how old each pose was when it went out: the frame's processing (a second bounds a
+        # stalled loop, not the speed); the target measured it
+        assert all(0 < p["latency_ns"] < 1e9 and p["source"] == "target" for p in listener.poses)
         assert listener.wait_for(lambda: any(s["state"] == "target" and s["fps"] > 0 for s in listener.status))
         status = listener.status[-1]
         assert status["schema"] == "cubeloc.status/1" and status["name"] == "looptest"
@@ -241,7 +244,7 @@ def test_with_frames_the_robots_base_in_the_map_goes_out_beside_the_camera_pose(
     truth = frames.T_map_target @ look_at(CAMERA_POSITION, np.zeros(3)) @ frames.T_base_camera.inverse()
     cameras = {p["seq"]: p for p in listener.poses}
     for base in listener.base_poses:
-        assert base["schema"] == "cubeloc.pose/2"
+        assert base["schema"] == "cubeloc.pose/4"
         assert (base["frame_id"], base["child_frame_id"], base["camera_frame_id"]) == \
             ("map", "robot7/base_link", "camera_optical")
         assert np.linalg.norm(np.array(base["position"]) - truth.translation) < 0.01
@@ -288,11 +291,11 @@ def test_a_ros2_subscriber_written_from_rmw_zenohs_design_gets_the_poses_through
 
         graph, seen = {}, set()
 
-        def graph_complete():  # the node and its three publishers (tokens arrive in any order)
+        def graph_complete():  # the node and its four publishers (tokens arrive in any order)
             found, tokens = publishers()
             graph.update(found)
             seen.update(tokens)
-            return len(graph) == 3 and any(t.endswith("/NN/%/%robot7/cubeloc") for t in seen)
+            return len(graph) == 4 and any(t.endswith("/NN/%/%robot7/cubeloc") for t in seen)
 
         assert wait_until(graph_complete, 20), publishers()[1]
         found = graph
@@ -302,12 +305,16 @@ def test_a_ros2_subscriber_written_from_rmw_zenohs_design_gets_the_poses_through
         received = []
         node.declare_subscriber(key(pose_token), lambda s: received.append(
             (decode(s.payload.to_bytes(), "pose"), s.attachment.to_bytes())))
+        diagnostics = []  # the status, as diagnostic_aggregator reads it (absolute: /diagnostics)
+        node.declare_subscriber(key(found["/diagnostics"]), lambda s: diagnostics.append(
+            decode(s.payload.to_bytes(), "diagnostics")))
         latched = []
         node_ext = zenoh.ext.declare_advanced_subscriber(
             node, key(found["/robot7/cubeloc/camera_info"]),
             lambda s: latched.append(decode(s.payload.to_bytes(), "camera_info")),
             history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1))
-        assert wait_until(lambda: len(received) >= 5 and latched, 20), (len(received), len(latched))
+        assert wait_until(lambda: len(received) >= 5 and latched and any(
+            d.status[0].level == 0 for d in diagnostics), 20), (len(received), len(latched), diagnostics[-1:])
     finally:
         stop.set()
         thread.join(5.0)
@@ -316,6 +323,9 @@ def test_a_ros2_subscriber_written_from_rmw_zenohs_design_gets_the_poses_through
         end_process(router)
     info = latched[0]
     assert (info.width, info.height, info.header.frame_id) == (1280, 1024, "camera_optical")
+    ok = next(d.status[0] for d in diagnostics if d.status[0].level == 0)  # OK: the cube measures the pose
+    assert ok.name == "cubeloc: pose" and ok.message == "pose from the target"
+    assert {kv.key: kv.value for kv in ok.values}["source"] == "target"
     frames = prepared.config.frames.robot_frames()
     truth = frames.T_map_target @ look_at(CAMERA_POSITION, np.zeros(3)) @ frames.T_base_camera.inverse()
     by_stamp = {p["stamp_ns"]: p for p in listener.poses}

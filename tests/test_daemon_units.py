@@ -19,7 +19,7 @@ from daemon.loop_stats import LoopStats
 from daemon.messages import UnpublishablePose, pose_message, pose_payload
 from daemon.sdnotify import SystemdNotifier
 from drivers.base import Frame
-from positioning.estimator import PoseEstimate, PoseState
+from positioning.estimator import PoseEstimate, PoseSource, PoseState
 from positioning.geometry import Transform, look_at
 from positioning.target import default_cube_yaml
 
@@ -53,14 +53,16 @@ def test_slot_get_wakes_on_put_and_on_close():
     assert time.monotonic() - started < 4.0
 
 
-# -- cubeloc.pose/1 ---------------------------------------------------------------------
+# -- cubeloc.pose/3 ---------------------------------------------------------------------
 def test_pose_payload_follows_the_schema():
     T = look_at(np.array([2.0, -1.0, 0.8]), np.zeros(3))
-    doc = json.loads(pose_message(42, 1_790_000_000_123_456_789, _estimate(T, np.eye(6) * 1e-6)))
-    assert doc["schema"] == "cubeloc.pose/1"
+    doc = json.loads(pose_message(42, 1_790_000_000_123_456_789, _estimate(T, np.eye(6) * 1e-6),
+                                  1_790_000_000_150_000_000))
+    assert doc["schema"] == "cubeloc.pose/3"
     assert doc["seq"] == 42 and doc["stamp_ns"] == 1_790_000_000_123_456_789
     assert doc["frame_id"] == "world" and doc["child_frame_id"] == "camera"
-    assert doc["state"] == "target" and doc["planes"] == 3
+    assert doc["state"] == "target" and doc["source"] == "target" and doc["planes"] == 3
+    assert doc["latency_ns"] == 26_543_211  # published - captured
     np.testing.assert_allclose(doc["position"], [2.0, -1.0, 0.8], atol=1e-12)
     q = np.array(doc["orientation"])
     assert abs(np.linalg.norm(q) - 1) < 1e-9 and q[3] >= 0
@@ -178,16 +180,19 @@ def test_loop_stats_count_the_time_without_a_pose_once_there_was_one_and_the_hel
     stats = LoopStats()
     stats.record_frame(0, "initialising", "waiting for the target", ())
     time.sleep(0.05)
-    stats.record_frame(1, "target", "", (0,), has_pose=True)
+    stats.record_frame(1, "target", "", (0,), PoseSource.TARGET)
     assert stats.lost_s == 0.0 and stats.lost_now_s() == 0.0  # waiting at the start is not lost
-    stats.record_frame(2, "tracking", "held: orientation from rays", (), has_pose=True)
+    stats.record_frame(2, "tracking", "held: orientation from rays", (), PoseSource.HELD)
+    assert stats.source_now() == "held"
     time.sleep(0.05)
     stats.record_frame(3, "lost", "", ())
     time.sleep(0.05)
     stats.record_frame(4, "lost", "", ())
     assert 0.09 <= stats.lost_s <= 0.5 and stats.lost_now_s() >= 0.09
-    stats.record_frame(5, "relocalised", "", (), has_pose=True)
+    assert stats.source_now() is None
+    stats.record_frame(5, "relocalised", "", (), PoseSource.RELOCALISED)
     assert stats.lost_now_s() == 0.0 and stats.held_frames == 1
+    assert stats.source_counts() == {"target": 1, "held": 1, "relocalised": 1}
 
 
 # -- configuration errors: one line, exit 2, nothing started ------------------------------

@@ -78,7 +78,7 @@ def test_echo_json_prints_the_payloads(publisher):
     port, pub = publisher
     out = _run_echo(port, pub, "--json", "--no-status")
     docs = [json.loads(line) for line in out.splitlines()]
-    assert len(docs) == 3 and all(d["schema"] == "cubeloc.pose/1" for d in docs)
+    assert len(docs) == 3 and all(d["schema"] == "cubeloc.pose/3" for d in docs)
     assert docs[0]["position"] == pytest.approx([1.5, -1.5, 0.91])
 
 
@@ -127,3 +127,18 @@ def test_the_example_subscriber_takes_a_zenoh_file_and_says_when_nothing_answers
     out, err = reader.communicate(timeout=30)
     assert reader.returncode == 0, err
     assert len(out.splitlines()) == 2 and out.split()[1] == "1.500000", out
+
+
+def test_echo_names_the_source_where_it_says_more_than_the_state():
+    from daemon.commands.echo import format_pose
+    from daemon.messages import pose_payload
+    from positioning.estimator import PoseSource
+
+    where = look_at(np.array([1.5, -1.5, 0.91]), np.zeros(3))
+    held = pose_payload(5, 1_700_000_000_000_000_000, PoseEstimate(where, PoseState.TRACKING, 0, (), 0.0, None,
+                                                                   PoseSource.HELD))
+    assert "tracking (held) 0 faces" in format_pose("r", held, None)
+    target = pose_payload(6, 1_700_000_000_000_000_000, PoseEstimate(where, PoseState.TARGET, 3, (0, 1, 4), 0.2))
+    assert "  target 3 faces" in format_pose("r", target, None)
+    del target["source"]  # a daemon of schema /1
+    assert "  target 3 faces" in format_pose("r", target, None)

@@ -73,7 +73,7 @@ def test_the_base_pose_payload_is_the_camera_pose_moved_with_the_same_seq_and_st
     estimate = _estimate(T_world_camera, np.eye(6) * 1e-6)
     camera = pose_payload(42, 1_790_000_000_000_000_000, estimate)
     base = base_pose_payload(42, 1_790_000_000_000_000_000, estimate, frames)
-    assert base["schema"] == "cubeloc.pose/2" and camera["schema"] == "cubeloc.pose/1"
+    assert base["schema"] == "cubeloc.pose/4" and camera["schema"] == "cubeloc.pose/3"
     assert (base["seq"], base["stamp_ns"]) == (camera["seq"], camera["stamp_ns"])
     assert (base["frame_id"], base["child_frame_id"], base["camera_frame_id"]) == \
         ("facility", "robot7/base_link", "robot7/camera")

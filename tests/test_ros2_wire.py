@@ -16,8 +16,10 @@ from ros2_msgs import decode
 
 from calib.camera_info import paper_camera
 from daemon.config import Ros2Config
+from daemon.messages import CameraStatus, StatusReport
 from daemon.ros2 import (
     CAMERA_INFO_TYPE,
+    DIAGNOSTICS_TYPE,
     ODOMETRY_TYPE,
     POSE_TYPE,
     TF_TYPE,
@@ -57,13 +59,15 @@ def test_keys_and_tokens_are_the_design_documents_examples():
 
 
 def _pyterfaces_schemas():
+    from ros2_pyterfaces.core.diagnostic_msgs.msg import DiagnosticArray
     from ros2_pyterfaces.core.geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
     from ros2_pyterfaces.core.nav_msgs.msg import Odometry
     from ros2_pyterfaces.core.sensor_msgs.msg import CameraInfo
     from ros2_pyterfaces.core.types import Sequence
 
     tf = {"__typename": TF_TYPE, "transforms": Sequence(TransformStamped)}  # tf2_msgs is not in it
-    return {POSE_TYPE: PoseWithCovarianceStamped, ODOMETRY_TYPE: Odometry, CAMERA_INFO_TYPE: CameraInfo, TF_TYPE: tf}
+    return {POSE_TYPE: PoseWithCovarianceStamped, ODOMETRY_TYPE: Odometry, CAMERA_INFO_TYPE: CameraInfo, TF_TYPE: tf,
+            DIAGNOSTICS_TYPE: DiagnosticArray}
 
 
 @pytest.mark.parametrize("distro", ["jazzy", "kilted", "rolling"])
@@ -140,7 +144,7 @@ def test_every_payload_decodes_with_a_second_cdr_implementation_and_says_what_wa
         assert len(attachment) == 33 and gid_length == 16 and gid == publisher.topics[role].gid
         assert before - 10**9 <= source_ns <= time.time_ns() + 10**9 or role == "camera_info"
         seen.setdefault(role, []).append((sequence, message))
-    assert sorted(seen) == ["camera_info", "odometry", "pose", "tf"]
+    assert sorted(seen) == ["camera_info", "odometry", "pose", "tf"]  # diagnostics come with status
     assert [s for s, _ in seen["pose"]] == [1, 2] and [s for s, _ in seen["camera_info"]] == [1]
     pose = seen["pose"][0][1]
     assert (pose.header.frame_id, pose.header.stamp.sec, pose.header.stamp.nanosec) == ("map", 1_790_000_000, 123_456_789)
@@ -166,3 +170,48 @@ def test_every_payload_decodes_with_a_second_cdr_implementation_and_says_what_wa
     assert publisher.topics["pose"].key.startswith("0/robot7/cubeloc/pose/geometry_msgs::msg::dds_::"
                                                    "PoseWithCovarianceStamped_/RIHS01_")
     assert publisher.topics["tf"].key.startswith("0/robot7/tf/tf2_msgs::msg::dds_::TFMessage_/RIHS01_")
+
+
+def _report(camera_state="streaming", state="tracking", detail="", source="map", lost_now_s=0.0):
+    camera = CameraStatus("aravis:MV-CA013", camera_state, "" if camera_state == "streaming" else "cable pulled",
+                          "MV-CA013-20UM", "K12345")
+    return StatusReport("robot7", state, detail, 1_790_000_000_500_000_000, 29.8, 1200, 1190, 3, 0,
+                        {"p50": 21.0, "p99": 35.5}, camera, 60.0, "0.1.0",
+                        extra={"source": source, "lost_now_s": lost_now_s, "held_frames": 12})
+
+
+@pytest.mark.parametrize("report, level, says", [
+    (_report(), 0, "pose from the map"),
+    (_report(state="target", source="target"), 0, "pose from the target"),
+    (_report(detail="held: orientation from rays", source="held"), 1, "pose held (held: orientation from rays)"),
+    (_report(state="bridged", source="odometry"), 1, "pose odometry"),
+    (_report(state="initialising", detail="waiting for the target", source=None), 1, "no pose yet (initialising"),
+    (_report(state="lost", detail="3 map points agree", source=None, lost_now_s=2.5), 2, "no pose for 2.5 s (lost"),
+    (_report(camera_state="reconnecting", source=None), 2, "camera reconnecting: cable pulled"),
+])
+def test_status_goes_to_diagnostics_ok_warn_or_error_and_decodes_with_a_second_cdr_implementation(
+        monkeypatch, report, level, says):
+    import zenoh.ext
+
+    session = FakeSession()
+    monkeypatch.setattr(zenoh.ext, "declare_advanced_publisher",
+                        lambda s, key, **_: FakeSession._Entity(session.sent, key))
+    frames = RobotFrames(Transform(np.eye(3), np.zeros(3)), Transform(np.eye(3), np.zeros(3)), "map", "base_link",
+                         "camera")
+    publisher = Ros2Publisher(session, Ros2Config(enabled=True, namespace="/robot7"), frames, paper_camera())
+    assert publisher.topics["diagnostics"].key.startswith(
+        "0/diagnostics/diagnostic_msgs::msg::dds_::DiagnosticArray_/RIHS01_")  # absolute: not namespaced
+    publisher.publish_diagnostics(report)
+    key, payload, _ = session.sent[-1]
+    assert key == publisher.topics["diagnostics"].key
+    message = decode(payload, "diagnostics")
+    assert (message.header.stamp.sec, message.header.stamp.nanosec) == (1_790_000_000, 500_000_000)
+    (status,) = message.status
+    assert status.level == level and status.message.startswith(says), status.message
+    assert status.name == "cubeloc: pose" and status.hardware_id == "MV-CA013-20UM K12345"
+    values = {kv.key: kv.value for kv in status.values}
+    assert values["source"] == (report.extra["source"] or "") and values["latency_p99_ms"] == "35.5"
+    publisher.close()
+    publisher.publish_diagnostics(report)  # closed: nothing more goes out
+    assert session.sent[-1][0] == key and len([s for s in session.sent if s[0] == key]) == 1
+

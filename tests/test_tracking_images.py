@@ -19,7 +19,7 @@ from drivers.sequence import read_image, read_sequence_index
 from fakes.optics import project, undistort_pixels
 from fakes.room import default_room
 from fakes.sequence import write_synthetic_sequence
-from positioning.estimator import PoseState
+from positioning.estimator import PoseSource, PoseState
 from positioning.evaluation import absolute_trajectory_error
 from positioning.geometry import Transform
 from positioning.target import make_cube
@@ -197,6 +197,7 @@ def test_blank_frames_are_coasted_then_lost_then_relocalised_against_keyframes(p
         r, pose = results[i], truth[i]
         if (i - BLANK[0] + 1) * 0.1 <= 0.5 + 1e-9:  # coasting
             assert r.estimate is not None and r.estimate.state is PoseState.TRACKING, r
+            assert r.estimate.source is PoseSource.HELD  # nothing in view: the motion model's
             error = r.estimate.T_world_camera.translation - pose.T_world_camera.translation
             assert error @ np.linalg.solve(r.estimate.covariance[:3, :3], error) < 25.0
         else:
@@ -206,8 +207,10 @@ def test_blank_frames_are_coasted_then_lost_then_relocalised_against_keyframes(p
     assert after <= BLANK[-1] + 2
     first = results[after].estimate
     assert first.state is PoseState.RELOCALISED and first.planes == 0  # by keyframes
+    assert first.source is PoseSource.RELOCALISED
     assert np.linalg.norm(first.T_world_camera.translation - truth[after].T_world_camera.translation) < 0.03
     assert results[after + 1].estimate is not None and results[after + 1].estimate.state is PoseState.TRACKING
+    assert results[after + 1].estimate.source is PoseSource.MAP
     for r, pose in zip(results[after:], truth[after:], strict=True):  # lost again is allowed; a wild pose is not
         if r.estimate is None:
             assert r.status == "lost"
@@ -232,8 +235,9 @@ def test_pure_rotation_is_held_on_rays_with_no_nan_no_jump_and_an_honest_covaria
     words = [r.estimate.state.value if r.estimate else r.status for r in results]
     assert words[0] == "target" and words[-1] in ("target", "relocalised"), words
     assert "lost" not in words, words
-    held = [i for i, r in enumerate(results) if r.detail and r.detail.startswith("held")]
+    held = [i for i, r in enumerate(results) if r.estimate.source is PoseSource.HELD]
     assert len(held) >= 15, words  # the turn (8 s at 6 fps) is mostly held
+    assert all(results[i].estimate.state is PoseState.TRACKING for i in held)
     for r, pose in zip(results, truth, strict=True):
         m = r.estimate.T_world_camera.matrix()
         assert np.all(np.isfinite(m))
@@ -252,7 +256,7 @@ def test_track_command_writes_a_tum_trajectory_and_prints_the_error(tmp_path, cl
     done = cli("track", "--target", str(sequence / "target.yaml"), "--calib", str(sequence / "camera.yaml"),
                "--sequence", str(sequence), "--out", str(out))
     assert done.returncode == 0, done.stderr
-    assert "ATE (no alignment" in done.stdout and "target 15" in done.stdout
+    assert "ATE (no alignment" in done.stdout and "target 15; poses from target 15" in done.stdout
     poses = read_tum(out)
     assert len(poses) == 15
     ate = absolute_trajectory_error(read_tum(sequence / "groundtruth.tum"), poses)

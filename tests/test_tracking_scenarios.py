@@ -17,7 +17,7 @@ from helpers import half_resolution
 from bench.common import in_loop_options, track_results
 from fakes.lenses import lens_calibration
 from fakes.sequence import write_synthetic_sequence
-from positioning.estimator import PoseState
+from positioning.estimator import PoseSource, PoseState
 from positioning.evaluation import score_estimates
 from positioning.trajectory_io import read_tum
 
@@ -138,8 +138,8 @@ def test_pure_rotation_on_the_axis_holds_the_orientation_throughout_and_the_posi
     position is held (measured: 100 % of frames, 6.7 mm RMS, orientation within 0.1 deg)."""
     score, results, truth = replay(tmp_path_factory, "spin_on_axis", seconds=14.0)
     assert score.coverage >= 0.95 and score.max_m < 0.030, score
-    held = [r for r in results if r.detail and r.detail.startswith("held")]
-    assert len(held) >= 40
+    held = [r for r in results if r.estimate is not None and r.estimate.source is PoseSource.HELD]
+    assert len(held) >= 40 and all(r.detail.startswith("held") for r in held)
     for r, t in zip(results, truth, strict=True):
         if r.estimate is not None:
             assert np.degrees(r.estimate.T_world_camera.rotation_angle_to(t.T_world_camera)) < 0.5

@@ -37,7 +37,8 @@ def register(subparsers) -> None:
     parser.add_argument("--sequence", required=True, metavar="DIR", help="sequence directory (mav0/cam0/...)")
     parser.add_argument("--out", required=True, metavar="OUT.tum", help="trajectory to write (TUM format)")
     parser.add_argument("--poses", metavar="OUT.jsonl",
-                        help="also write the cubeloc.pose/1 payload of every frame with a pose, one JSON per line")
+                        help="also write the cubeloc.pose/3 payload of every frame with a pose, one JSON per line "
+                             "(latency_ns null: not published live)")
     parser.add_argument("--strict", action="store_true",
                         help="stop at the first frame that cannot be read or has the wrong size (exit 2); "
                              "by default it is dropped and counted, as a camera's bad frames are")
@@ -121,6 +122,7 @@ def run(args) -> int:
     pose_states: list[str] = []
     payloads: list[str] = []
     states: Counter[str] = Counter()
+    sources: Counter[str] = Counter()
     started = time.perf_counter()
     try:
         for seq, entry in enumerate(entries[args.first:], start=args.first):
@@ -146,6 +148,7 @@ def run(args) -> int:
                 poses.append(StampedPose(entry.stamp_ns, result.estimate.T_world_camera))
                 pose_states.append(result.estimate.state.value)
                 states[result.estimate.state.value] += 1
+                sources[result.estimate.source.value] += 1
                 if args.poses:
                     try:
                         payloads.append(encode(pose_payload(seq, entry.stamp_ns, result.estimate)).decode())
@@ -172,6 +175,8 @@ def run(args) -> int:
         for reason, count in stats.dropped.items():
             states[f"odometry dropped ({reason})"] = count
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
+    if sources:  # what measured the poses (README, "Zenoh": the pose's source)
+        summary += "; poses from " + ", ".join(f"{name} {count}" for name, count in sources.most_common())
     replayed = len(entries) - args.first
     print(f"{replayed} frames in {elapsed:.1f} s ({replayed / max(elapsed, 1e-9):.1f} fps): {summary}")
     written = [str(out)] + ([args.poses] if args.poses else []) + ([args.mcap] if args.mcap else [])

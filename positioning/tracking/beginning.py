@@ -20,7 +20,7 @@ import numpy as np
 import structlog
 
 from positioning.camera_model import undistort
-from positioning.estimator import FrameResult, PoseEstimate, PoseState
+from positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
 from positioning.geometry import Transform
 from positioning.tracking.initialiser import InitFrame, InitResult, InitStatus, out_of_view
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
@@ -60,7 +60,7 @@ class MapBeginning:
             self._hold.rebase(None, tracks.ids, xn)
             self._update_motion(pose, stamp_ns)
             self._frame_pose = pose
-            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, covariance)
+            estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, covariance, PoseSource.HELD)
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
                                  empty, status)
         self._hold.end()
@@ -70,7 +70,7 @@ class MapBeginning:
             self.lost, self._target_seen, self._last_covariance = False, True, trusted.covariance
             self._drift.reset()
         estimate = PoseEstimate(trusted.T_world_camera, state, trusted.planes, trusted.tag_ids,
-                                trusted.reproj_rms_px, trusted.covariance)
+                                trusted.reproj_rms_px, trusted.covariance, PoseSource.TARGET)
         status = "relocalised" if state is PoseState.RELOCALISED else "ok"
         self._hold.rebase(trusted.T_world_camera, tracks.ids, xn)
         # beginning again, the pose is too unsure to anchor a keyframe: not taken for motion either

@@ -10,9 +10,10 @@ frame is matched against the keyframes every ``relocalise_every`` frames. Starte
 saved map (``start_from_map``), each keyframe also finds the map's own points again
 (``Relocaliser.refind``) and retires those no longer there (``Map.retire``).
 
-States: ``target`` (the target is in view and trusted), ``tracking`` (the map alone, or
-held: detail ``held: orientation from rays``), ``relocalised`` (a visible correction),
-no estimate with status ``initialising`` or ``lost``.
+States: ``target`` (the target is in view and trusted), ``tracking`` (the map alone, held
+on rays, or bridged by the wheels: the estimate's ``PoseSource`` says which),
+``relocalised`` (a visible correction); no estimate with status ``initialising``,
+``waiting`` or ``verifying`` (started from a saved map) or ``lost``.
 """
 
 from __future__ import annotations
@@ -26,7 +27,14 @@ import numpy as np
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import ahead_mask, outline_pixels, project_normalised
 from positioning.detection import DetectorOptions
-from positioning.estimator import FeatureState, FrameResult, FrameView, PoseEstimate, PoseState
+from positioning.estimator import (
+    FeatureState,
+    FrameResult,
+    FrameView,
+    PoseEstimate,
+    PoseSource,
+    PoseState,
+)
 from positioning.geometry import Transform
 from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
@@ -163,7 +171,7 @@ class TrackingProcessor:
         result = out.result
         # lost (bridged by wheel odometry or not), held on rays, or beginning the map again
         # on the target: look for the map's keyframes; a match ends each
-        bridged = result.status == "bridged"
+        bridged = _source(result) is PoseSource.ODOMETRY
         searching = self.tracker.initialised and (self.tracker.holding or self.tracker.lost
                                                   or self.tracker.beginning_again)
         if searching:
@@ -171,7 +179,7 @@ class TrackingProcessor:
             every = 1 if self._booting else self.options.relocalise_every  # at boot nothing else can give a pose
             if (self._lost_frames - 1) % every == 0:  # it costs ~4 KLT steps
                 result = self._relocalise(image, stamp_ns, result)
-                bridged = result.status == "bridged"
+                bridged = _source(result) is PoseSource.ODOMETRY
             want = result.estimate is not None and not bridged
         else:
             want = out.want_features or self.tracker.holding  # held: fresh corners keep the rays coming
@@ -191,7 +199,7 @@ class TrackingProcessor:
         if estimate is not None and estimate.planes > 0:  # the cube: trusted as always
             self._booting = False
             return result
-        if estimate is None or result.detail.startswith("held") or result.status == "bridged":
+        if estimate is None or estimate.source in (PoseSource.HELD, PoseSource.ODOMETRY):
             self._agreeing = 0
             return FrameResult(None, "waiting", "waiting for a known place of the map or the cube")
         self._agreeing += 1
@@ -235,5 +243,10 @@ class TrackingProcessor:
         self.front_end.adopt(found.point_ids, found.pixels)
         covariance = self.tracker.relocalised(stamp_ns, found.T_world_camera, Tracks(found.point_ids, found.pixels),
                                               found.covariance)
-        estimate = PoseEstimate(found.T_world_camera, PoseState.RELOCALISED, 0, (), 0.0, covariance)
+        estimate = PoseEstimate(found.T_world_camera, PoseState.RELOCALISED, 0, (), 0.0, covariance,
+                                PoseSource.RELOCALISED)
         return FrameResult(estimate, "relocalised", f"{len(found.point_ids)} map points found again")
+
+
+def _source(result: FrameResult) -> PoseSource | None:
+    return None if result.estimate is None else result.estimate.source

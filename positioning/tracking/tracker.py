@@ -51,7 +51,7 @@ import structlog
 
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project, undistort
-from positioning.estimator import FrameResult, PoseEstimate, PoseState
+from positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
 from positioning.geometry import Transform
 from positioning.tracking import bundle
 from positioning.tracking.beginning import MapBeginning
@@ -170,11 +170,13 @@ class Tracker(MapBeginning):
                                                  self.options.pnp_reproj_px, self.fx)
                 pose = fused if fused is not None and not self._jumped(fused, pose) else pose
             estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
-                                    trusted.covariance)
+                                    trusted.covariance, PoseSource.TARGET)
         elif tracked is not None or held is not None:
             pose, covariance = (tracked, covariance) if tracked is not None else held
             state = PoseState.RELOCALISED if self.lost else PoseState.TRACKING
-            estimate = PoseEstimate(pose, state, 0, (), rms, self._drift.covariance(self._last, pose, covariance))
+            source = PoseSource.MAP if tracked is not None else PoseSource.HELD
+            estimate = PoseEstimate(pose, state, 0, (), rms, self._drift.covariance(self._last, pose, covariance),
+                                    source)
         else:
             self.lost, self._velocity, self._target_seen = True, None, False
             self._hold.end()
@@ -182,7 +184,7 @@ class Tracker(MapBeginning):
             bridged = None if self.odometry is None or self._last is None else self.odometry.bridge(
                 self._last, self._last_stamp, self._last_covariance, stamp_ns, self.options.max_hold_s)
             if bridged is not None:  # published, and nothing else: the map waits for the camera
-                estimate = PoseEstimate(bridged[0], PoseState.TRACKING, 0, (), 0.0, bridged[1])
+                estimate = PoseEstimate(bridged[0], PoseState.TRACKING, 0, (), 0.0, bridged[1], PoseSource.ODOMETRY)
                 return TrackerOutput(FrameResult(estimate, "bridged", f"wheel odometry; {detail}"), False, drop)
             return TrackerOutput(FrameResult(None, "lost", detail), False, drop)
 
