@@ -177,7 +177,8 @@ class TargetPlacement(Placement):
 class FramesConfig(Section):
     """The robot's frames (REP 105). With ``base_from_camera`` or ``map_from_target`` set,
     ``map`` -> ``base_link`` is published beside the camera's pose (``base_pose``); the one
-    not set is the identity."""
+    not set is the identity. With ``[odometry]`` on, ``map`` -> ``odom`` too (``map_odom``,
+    and on ROS 2's ``tf`` instead of ``map`` -> ``base_link``)."""
 
     base_from_camera: Placement | None = Field(None, description="the camera's mount on the robot: T_base_camera")
     map_from_target: Placement | None = Field(None, description="where the target stands in the map: T_map_target")
@@ -186,8 +187,9 @@ class FramesConfig(Section):
     map_frame: str = "map"
     base_frame: str = "base_link"
     camera_frame: str = "camera_optical"
+    odom_frame: str = "odom"  # the wheel odometry's frame: the parent of base_frame in its odom -> base_link
 
-    @field_validator("map_frame", "base_frame", "camera_frame")
+    @field_validator("map_frame", "base_frame", "camera_frame", "odom_frame")
     @classmethod
     def _frame_name(cls, value: str) -> str:
         if not FRAME_NAME.fullmatch(value):
@@ -210,7 +212,7 @@ class FramesConfig(Section):
         identity = Placement()
         return RobotFrames((self.base_from_camera or identity).transform(),
                            (self.map_from_target or identity).transform(),
-                           self.map_frame, self.base_frame, self.camera_frame)
+                           self.map_frame, self.base_frame, self.camera_frame, self.odom_frame)
 
 
 def _ros_name(value: str, what: str) -> str:
@@ -228,7 +230,7 @@ class Ros2Topics(Section):
 
     pose: str = "cubeloc/pose"  # geometry_msgs/msg/PoseWithCovarianceStamped, map -> base_link
     odometry: str = "cubeloc/odometry"  # nav_msgs/msg/Odometry, the same pose (the twist is not measured)
-    tf: str = "tf"  # tf2_msgs/msg/TFMessage, map -> base_link, with publish_tf only
+    tf: str = "tf"  # tf2_msgs/msg/TFMessage with publish_tf: map -> odom with [odometry] on, else map -> base_link
     camera_info: str = "cubeloc/camera_info"  # sensor_msgs/msg/CameraInfo, once, transient local
     # diagnostic_msgs/msg/DiagnosticArray from each status (1 Hz): OK while the camera or the
     # target measures the pose, WARN held or bridged or before the first pose, ERROR lost or
@@ -255,7 +257,8 @@ class Ros2Config(Section):
     node_name: str = "cubeloc"
     distro: Literal["jazzy", "kilted", "lyrical", "rolling"] = Field(
         "jazzy", description="whose message definitions give the type hashes in the keys")
-    publish_tf: bool = Field(False, description="map -> base_link on tf: only if nothing else parents base_link")
+    publish_tf: bool = Field(False, description="on tf: map -> odom with [odometry] on (REP 105); without it "
+                                                "map -> base_link, only if nothing else parents base_link")
     topics: Ros2Topics = Ros2Topics()
 
     @field_validator("namespace")

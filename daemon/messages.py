@@ -1,5 +1,6 @@
 """The wire payloads: ``cubeloc.pose/3`` (world -> camera), ``cubeloc.pose/4`` (map ->
-base_link, with ``[frames]``) and ``cubeloc.status/1`` (JSON, UTF-8).
+base_link, with ``[frames]``), ``cubeloc.map_odom/1`` (map -> odom, with ``[odometry]``)
+and ``cubeloc.status/1`` (JSON, UTF-8).
 
 /3 and /4 are /1 and /2 with two more fields: ``source`` (what measured the pose:
 ``positioning.estimator.PoseSource``) and ``latency_ns`` (publish time minus the capture
@@ -25,6 +26,7 @@ from positioning.geometry import Transform
 
 POSE_SCHEMA = "cubeloc.pose/3"  # world -> camera: /1's fields, source and latency_ns
 BASE_POSE_SCHEMA = "cubeloc.pose/4"  # map -> base_link: /3's fields and camera_frame_id (/2 + the same two)
+MAP_ODOM_SCHEMA = "cubeloc.map_odom/1"  # map -> odom (REP 105): /4's fields but camera_frame_id
 STATUS_SCHEMA = "cubeloc.status/1"
 
 # A camera further than this from the world origin is a solver failure, not a pose.
@@ -62,6 +64,16 @@ def base_pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: R
                               frames.map_frame, frames.base_frame, published_ns, max_position_m=MAX_MAP_POSITION_M)
     document["camera_frame_id"] = frames.camera_frame
     return document
+
+
+def map_odom_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, T_odom_base: Transform,
+                     published_ns: int | None = None) -> dict[str, Any]:
+    """The ``cubeloc.map_odom/1`` document: ``map`` -> ``odom`` from this frame's pose and the
+    odometry's ``T_odom_base`` at its capture time (``frames.odom_in_map``), the same
+    ``seq`` and ``stamp_ns``, ``state`` and ``source`` as the camera's pose. Validated as /3."""
+    transform, covariance = frames.odom_in_map(estimate.T_world_camera, estimate.covariance, T_odom_base)
+    return _pose_document(MAP_ODOM_SCHEMA, seq, stamp_ns, estimate, transform, covariance, frames.map_frame,
+                          frames.odom_frame, published_ns, max_position_m=MAX_MAP_POSITION_M)
 
 
 def _pose_document(schema: str, seq: int, stamp_ns: int, estimate: PoseEstimate, transform: Transform,
@@ -121,6 +133,11 @@ def pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, published_ns: 
 def base_pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames,
                       published_ns: int | None = None) -> bytes:
     return encode(base_pose_payload(seq, stamp_ns, estimate, frames, published_ns))
+
+
+def map_odom_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, T_odom_base: Transform,
+                     published_ns: int | None = None) -> bytes:
+    return encode(map_odom_payload(seq, stamp_ns, estimate, frames, T_odom_base, published_ns))
 
 
 @dataclass(frozen=True)

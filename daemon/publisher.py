@@ -3,13 +3,14 @@
 ========================  ============  ==============================================
 ``pose``                  publication   ``cubeloc.pose/3``, every frame with a pose
 ``base_pose``             publication   ``cubeloc.pose/4`` (map -> base_link), with ``[frames]``
+``map_odom``              publication   ``cubeloc.map_odom/1`` (map -> odom, REP 105), with ``[odometry]``
 ``status``                publication   ``cubeloc.status/1``, once a second
 ``alive``                 liveliness    present while the daemon runs
 ``calibration``           queryable     the camera_info YAML in use
 ``reset``                 queryable     re-initialise on the target (deny it with Zenoh ACL)
 ========================  ============  ==============================================
 
-``pose`` and ``base_pose`` use congestion control DROP and express with a high priority: a slow or absent
+``pose``, ``base_pose`` and ``map_odom`` use congestion control DROP and express with a high priority: a slow or absent
 subscriber costs a message, never a stalled loop.
 """
 
@@ -41,6 +42,7 @@ class ZenohPublisher:
         calibration_yaml: str,
         request_reset: Callable[[], bool],
         base_pose: bool = False,
+        map_odom: bool = False,
     ) -> None:
         import zenoh
 
@@ -52,6 +54,7 @@ class ZenohPublisher:
         self._session = session
         self._pose = self._pose_publisher(f"{prefix}/pose")
         self._base_pose = self._pose_publisher(f"{prefix}/base_pose") if base_pose else None
+        self._map_odom = self._pose_publisher(f"{prefix}/map_odom") if map_odom else None
         self._status = session.declare_publisher(
             f"{prefix}/status",
             encoding=zenoh.Encoding.APPLICATION_JSON,
@@ -78,6 +81,9 @@ class ZenohPublisher:
 
     def publish_base_pose(self, payload: bytes) -> None:
         self._base_pose.put(payload)
+
+    def publish_map_odom(self, payload: bytes) -> None:
+        self._map_odom.put(payload)
 
     def publish_status(self, payload: bytes) -> None:
         self._status.put(payload)

@@ -36,6 +36,7 @@ from calib.camera_info import CameraCalibration
 from daemon.messages import StatusReport
 from positioning.estimator import PoseEstimate, PoseSource
 from positioning.frames import RobotFrames
+from positioning.tracking.odometry import OdometryBuffer
 
 log = structlog.get_logger()
 
@@ -129,16 +130,20 @@ def node_token(domain_id: int, session_id: str, node_id: int, namespace: str, no
 class Ros2Publisher:
     """The node and its publishers on a Zenoh session: ``publish(seq, stamp_ns, estimate)``
     per pose, the camera's CameraInfo at start and after a reload (transient local, depth
-    1); ``close``
-    undeclares everything (tokens first, so the graph sees the node go)."""
+    1), ``publish_diagnostics`` per status; ``close`` undeclares everything (tokens first,
+    so the graph sees the node go). With ``odometry`` (the robot's wheel odometry), ``tf``
+    carries ``map`` -> ``odom`` (REP 105), never ``map`` -> ``base_link``: the odometry's
+    ``odom`` -> ``base_link`` is the base's only parent."""
 
-    def __init__(self, session, config, frames: RobotFrames, calibration: CameraCalibration) -> None:
+    def __init__(self, session, config, frames: RobotFrames, calibration: CameraCalibration,
+                 odometry: OdometryBuffer | None = None) -> None:
         import zenoh
         import zenoh.ext
 
         self._zenoh = zenoh
         self._types = typestore(config.distro)
         self._frames = frames
+        self._odometry = odometry
         self.session_id = str(session.info.zid())
         domain, namespace, node = config.domain_id, config.namespace, config.node_name
         self._node_name = node
@@ -201,14 +206,19 @@ class Ros2Publisher:
                "odometry": self._msg(ODOMETRY_TYPE, header=header, child_frame_id=frames.base_frame,
                                      pose=with_covariance, twist=twist)}
         if "tf" in self.topics:
-            pose = self._pose(transform)
-            moved = self._msg("geometry_msgs/msg/Transform",
-                              translation=self._msg("geometry_msgs/msg/Vector3", x=pose.position.x,
-                                                    y=pose.position.y, z=pose.position.z),
-                              rotation=pose.orientation)
+            child, moved = frames.base_frame, transform
+            if self._odometry is not None:  # map -> odom at this frame's stamp; none without odometry there
+                T_odom_base = self._odometry.pose_at(stamp_ns)
+                if T_odom_base is None:
+                    return out
+                child, moved = frames.odom_frame, frames.odom_in_map(estimate.T_world_camera, None, T_odom_base)[0]
+            pose = self._pose(moved)
+            tf_transform = self._msg("geometry_msgs/msg/Transform",
+                                     translation=self._msg("geometry_msgs/msg/Vector3", x=pose.position.x,
+                                                           y=pose.position.y, z=pose.position.z),
+                                     rotation=pose.orientation)
             out["tf"] = self._msg(TF_TYPE, transforms=[self._msg(
-                "geometry_msgs/msg/TransformStamped", header=header, child_frame_id=frames.base_frame,
-                transform=moved)])
+                "geometry_msgs/msg/TransformStamped", header=header, child_frame_id=child, transform=tf_transform)])
         return out
 
     def diagnostics(self, report: StatusReport):

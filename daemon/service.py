@@ -12,6 +12,7 @@ Zenoh entities are undeclared and the session closed, all within about a second.
 
 from __future__ import annotations
 
+import collections
 import threading
 import time
 from collections.abc import Callable
@@ -25,7 +26,7 @@ from daemon.capture import CaptureThread
 from daemon.frame_queue import LatestFrameSlot
 from daemon.loop_stats import LoopStats
 from daemon.map_store import MapStore
-from daemon.messages import StatusReport, base_pose_message, status_message
+from daemon.messages import StatusReport, base_pose_message, map_odom_message, status_message
 from daemon.odometry_in import OdometryInput
 from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
 from daemon.preflight import Prepared, make_processor, read_positioning_files
@@ -65,6 +66,7 @@ class Daemon:
         # wheel odometry in ([odometry]): filled from Zenoh, read by the tracker
         self.odometry = self.config.odometry.buffer() if self.config.odometry.enabled else None
         self._odometry_in: OdometryInput | None = None
+        self._map_odom = collections.Counter(published=0, no_odometry=0)  # map -> odom, per frame with a pose
         self.map_store: MapStore | None = None
         self.processor = self._with_map(self._with_odometry(
             processor if processor is not None else make_processor(prepared)), prepared)
@@ -111,10 +113,10 @@ class Daemon:
                 frame_sinks=self._frame_sinks(),
             )
             self._publisher = ZenohPublisher(session, config.name, self.prepared.calibration_yaml, loop.request_reset,
-                                             base_pose=config.frames.enabled)
+                                             base_pose=config.frames.enabled, map_odom=self.odometry is not None)
             if config.ros2.enabled:
                 self._ros2 = Ros2Publisher(session, config.ros2, config.frames.robot_frames(),
-                                           self.prepared.calibration)
+                                           self.prepared.calibration, self.odometry)
             if self.odometry is not None:
                 self._odometry_in = OdometryInput(session, config, self.odometry)
             self._loop = loop
@@ -164,15 +166,28 @@ class Daemon:
 
     def _pose_sinks(self) -> tuple:
         """What each published pose also goes to: the base in the map on ``base_pose``
-        (with ``[frames]``), the ROS 2 messages (with ``[ros2] enabled``)."""
+        (with ``[frames]``), ``map`` -> ``odom`` on ``map_odom`` (with ``[odometry]``), the
+        ROS 2 messages (with ``[ros2] enabled``)."""
         config, sinks = self.config, []
+        frames = config.frames.robot_frames()
         if config.frames.enabled:
-            frames = config.frames.robot_frames()
 
             def base_pose(seq: int, stamp_ns: int, estimate) -> None:
                 self._publisher.publish_base_pose(base_pose_message(seq, stamp_ns, estimate, frames, time.time_ns()))
 
             sinks.append(base_pose)
+        if self.odometry is not None:
+
+            def map_odom(seq: int, stamp_ns: int, estimate) -> None:
+                T_odom_base = self.odometry.pose_at(stamp_ns)
+                if T_odom_base is None:  # no odometry around this frame: no map -> odom for it
+                    self._map_odom["no_odometry"] += 1
+                    return
+                self._publisher.publish_map_odom(map_odom_message(seq, stamp_ns, estimate, frames, T_odom_base,
+                                                                  time.time_ns()))
+                self._map_odom["published"] += 1
+
+            sinks.append(map_odom)
         if config.ros2.enabled:
             if not config.frames.enabled:
                 log.warning("ros2 without [frames]: map is the target's frame and base_link is the camera")
@@ -266,7 +281,8 @@ class Daemon:
                    "lost_s": round(stats.lost_s, 2), "lost_now_s": round(stats.lost_now_s(), 2),
                    "held_frames": stats.held_frames, "source": stats.source_now(),
                    "poses_by_source": stats.source_counts(), "reload": dict(self._reloads),
-                   **({"odometry": self.odometry.report()} if self.odometry is not None else {}),
+                   **({"odometry": self.odometry.report(), "map_odom": dict(self._map_odom)}
+                      if self.odometry is not None else {}),
                    **({"foxglove": self._viewer.report()} if self._viewer is not None else {}),
                    **({"map": self.map_store.report()} if self.map_store is not None else {})},
         )

@@ -6,7 +6,12 @@ The vision gives ``T_world_camera`` (world = the target's frame). A robot integr
     T_map_base = T_map_target @ T_world_camera @ inverse(T_base_camera)
 
 with ``T_map_target`` where the target stands in the facility map and ``T_base_camera``
-the camera's mount on the robot (both fixed, measured once).
+the camera's mount on the robot (both fixed, measured once). A robot whose wheel odometry
+publishes ``odom`` -> ``base_link`` gets ``map`` -> ``odom`` instead (REP 105: the
+localiser's correction of the odometry's drift), from the same frame's base pose and the
+odometry's ``T_odom_base`` at the frame's capture time:
+
+    T_map_odom = T_map_base @ inverse(T_odom_base)
 
 Covariances are 6x6 over (position, rotation) of the child frame expressed in the parent
 frame, ROS ``PoseWithCovariance`` order: the perturbation is ``p' = p + dp`` and
@@ -56,6 +61,7 @@ class RobotFrames:
     map_frame: str = "map"
     base_frame: str = "base_link"
     camera_frame: str = "camera_optical"
+    odom_frame: str = "odom"
 
     @property
     def up_in_target(self) -> np.ndarray:
@@ -65,8 +71,18 @@ class RobotFrames:
     def base_in_map(self, T_world_camera: Transform, covariance: np.ndarray | None
                     ) -> tuple[Transform, np.ndarray | None]:
         """``T_map_base`` and its covariance (None when the camera pose has none)."""
-        T_camera_base = self.T_base_camera.inverse()
-        pose = self.T_map_target @ T_world_camera @ T_camera_base
+        return self._in_map(T_world_camera, covariance, self.T_base_camera.inverse())
+
+    def odom_in_map(self, T_world_camera: Transform, covariance: np.ndarray | None, T_odom_base: Transform
+                    ) -> tuple[Transform, np.ndarray | None]:
+        """``T_map_odom`` (REP 105) from the camera's pose and the odometry's ``T_odom_base``
+        at the same time, with the covariance of the camera's pose carried to the odom
+        frame's origin (the odometry taken as exact at that instant)."""
+        return self._in_map(T_world_camera, covariance, self.T_base_camera.inverse() @ T_odom_base.inverse())
+
+    def _in_map(self, T_world_camera: Transform, covariance: np.ndarray | None, T_camera_child: Transform
+                ) -> tuple[Transform, np.ndarray | None]:
+        pose = self.T_map_target @ T_world_camera @ T_camera_child
         if covariance is None:
             return pose, None
-        return pose, reframe_covariance(covariance, T_world_camera, T_camera_base, self.T_map_target)
+        return pose, reframe_covariance(covariance, T_world_camera, T_camera_child, self.T_map_target)

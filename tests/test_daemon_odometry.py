@@ -97,3 +97,86 @@ def test_odometry_samples_are_used_and_bad_ones_counted_on_status(tmp_path, cube
     finally:
         stop.set()
         thread.join(5.0)
+
+
+def test_a_tf_consumer_composes_map_to_odom_with_the_robots_odometry_into_the_base_pose(tmp_path, cube_image,
+                                                                                        listeners):
+    """REP 105 and tf2 as a ROS consumer reads them: the robot's odometry publishes
+    odom -> base_link (here: driving 0.2 m/s along its x, its heading 25 deg, as wheels that
+    have drifted from the map would say); cubeloc publishes map -> odom on /tf and
+    cubeloc/<name>/map_odom. Composed at the same stamp they give the base pose cubeloc
+    publishes on base_pose within 1 mm, and no frame has two parents."""
+    import threading
+
+    from ros2_msgs import decode
+
+    from positioning.geometry import Transform
+
+    port = free_port()
+    mount = {"xyz": [0.3, 0.0, 1.1], "rpy_deg": [-90, 0, -90]}
+    prepared = make_prepared(tmp_path, port, frames={"base_from_camera": mount},
+                             ros2={"enabled": True, "publish_tf": True})
+    config = prepared.config.model_copy(update={"odometry": prepared.config.odometry.model_validate(
+        {"enabled": True, "source": "json", "stale_s": 60})})
+    prepared = dataclasses.replace(prepared, config=config)
+    start_ns = time.time_ns()
+    yaw = np.radians(25.0)
+    quaternion = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+
+    def odom_base(stamp_ns: int) -> Transform:  # what the wheels say at any time
+        return Transform.from_quaternion(np.array([1.0 + 0.2 * (stamp_ns - start_ns) / 1e9, -2.0, 0.0]), quaternion)
+
+    listener = listeners(port)
+    tf_messages, map_odom = [], []
+    listener.session.declare_subscriber("0/tf/tf2_msgs::msg::dds_::TFMessage_/*",
+                                        lambda s: tf_messages.append(decode(s.payload.to_bytes(), "tf")))
+    listener.session.declare_subscriber("cubeloc/looptest/map_odom",
+                                        lambda s: map_odom.append(json.loads(s.payload.to_bytes())))
+    sending = threading.Event()
+
+    def wheels():  # 50 Hz, stamped as measured
+        while not sending.wait(0.02):
+            stamp = time.time_ns()
+            pose = odom_base(stamp)
+            listener.session.put("cubeloc/looptest/odometry", json.dumps({
+                "schema": "cubeloc.odometry/1", "stamp_ns": stamp, "frame_id": "odom", "child_frame_id": "base_link",
+                "position": pose.translation.tolist(), "orientation": pose.quaternion().tolist()}))
+
+    sender = threading.Thread(target=wheels, daemon=True)
+    sender.start()
+    _, stop, thread, _ = start_daemon(prepared, Script(cube_image, [10_000]))
+    try:
+        assert listener.wait_for(lambda: len(tf_messages) >= 5 and len(map_odom) >= 5 and listener.base_poses, 30), \
+            (len(tf_messages), len(map_odom), listener.status[-1:])
+    finally:
+        stop.set()
+        thread.join(5.0)
+        sending.set()
+        sender.join(2.0)
+    parents = {}
+    for message in tf_messages:
+        for transform in message.transforms:
+            parents.setdefault(transform.child_frame_id, set()).add(transform.header.frame_id)
+    parents.setdefault("base_link", set()).add("odom")  # the robot's own odom -> base_link
+    assert parents == {"odom": {"map"}, "base_link": {"odom"}}  # one parent each
+    base_by_stamp = {b["stamp_ns"]: b for b in listener.base_poses}
+    compared = 0
+    for message in tf_messages:
+        (transform,) = message.transforms
+        stamp = transform.header.stamp.sec * 10**9 + transform.header.stamp.nanosec
+        t, q = transform.transform.translation, transform.transform.rotation
+        T_map_odom = Transform.from_quaternion(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
+        T_map_base = T_map_odom @ odom_base(stamp)  # tf2: lookupTransform(map, base_link, stamp)
+        base = base_by_stamp.get(stamp)
+        if base is not None:
+            assert np.linalg.norm(T_map_base.translation - np.array(base["position"])) < 0.001
+            compared += 1
+    assert compared >= 1
+    for document in map_odom:  # the same transform as JSON, with the pose's state and source
+        assert document["schema"] == "cubeloc.map_odom/1" and document["child_frame_id"] == "odom"
+        T_map_base = Transform.from_quaternion(np.array(document["position"]),
+                                               np.array(document["orientation"])) @ odom_base(document["stamp_ns"])
+        base = base_by_stamp.get(document["stamp_ns"])
+        if base is not None:
+            assert np.linalg.norm(T_map_base.translation - np.array(base["position"])) < 0.001
+    assert listener.status[-1]["extra"]["map_odom"]["published"] >= 5

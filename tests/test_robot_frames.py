@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from cubeloc.errors import ConfigError
 from daemon.config import load_config
-from daemon.messages import base_pose_payload, pose_payload
-from positioning.estimator import PoseEstimate, PoseState
+from daemon.messages import base_pose_payload, map_odom_payload, pose_payload
+from positioning.estimator import PoseEstimate, PoseSource, PoseState
 from positioning.frames import RobotFrames, reframe_covariance
 from positioning.geometry import Transform, look_at
 
@@ -81,6 +81,35 @@ def test_the_base_pose_payload_is_the_camera_pose_moved_with_the_same_seq_and_st
     np.testing.assert_allclose(base["position"], expected.translation, atol=1e-12)
     np.testing.assert_allclose(np.abs(np.dot(base["orientation"], expected.quaternion())), 1.0, atol=1e-12)
     assert len(base["covariance"]) == 36 and set(base) == set(camera) | {"camera_frame_id"}
+
+
+def test_map_to_odom_composed_with_the_odometry_is_the_base_in_the_map_and_carries_the_covariance():
+    """REP 105: map -> odom after odom -> base_link at the same stamp is map -> base_link;
+    its covariance is the camera pose's carried to the odom frame's origin (sampled: within
+    4 % of the sigmas, as the base's); the payload keeps seq, stamp, state and source."""
+    rng = np.random.default_rng(11)
+    T_world_camera = look_at(np.array([1.5, -1.2, 0.8]), np.zeros(3))
+    # the odometry has drifted: it puts the base 3 m and 40 deg away from where the map has it
+    T_odom_base = Transform(Rotation.from_euler("z", 40, degrees=True).as_matrix(), [3.0, 1.0, 0.0])
+    frames = RobotFrames(MOUNT, PLACEMENT, "map", "base_link", "camera_optical", "odom")
+    a = rng.normal(size=(6, 6))
+    covariance = a @ a.T * 1e-6 + np.diag([1e-6, 4e-6, 1e-6, 1e-4, 2e-4, 5e-5])
+    T_map_odom, predicted = frames.odom_in_map(T_world_camera, covariance, T_odom_base)
+    T_map_base = frames.base_in_map(T_world_camera, None)[0]
+    composed = T_map_odom @ T_odom_base  # what a tf2 consumer does
+    np.testing.assert_allclose(composed.matrix(), T_map_base.matrix(), atol=1e-12)
+    draws = rng.multivariate_normal(np.zeros(6), covariance, size=40_000)
+    deltas = np.array([_delta(frames.odom_in_map(_perturb(T_world_camera, d), None, T_odom_base)[0], T_map_odom)
+                       for d in draws])
+    sigma = np.sqrt(np.diag(predicted))
+    np.testing.assert_array_less(np.abs(np.cov(deltas.T) - predicted), 0.04 * np.outer(sigma, sigma))
+    estimate = PoseEstimate(T_world_camera, PoseState.TRACKING, 0, (), 0.0, covariance, PoseSource.HELD)
+    document = map_odom_payload(9, 1_790_000_000_000_000_000, estimate, frames, T_odom_base, 1_790_000_000_020_000_000)
+    assert document["schema"] == "cubeloc.map_odom/1" and (document["frame_id"], document["child_frame_id"]) == \
+        ("map", "odom")
+    assert (document["seq"], document["state"], document["source"], document["latency_ns"]) == \
+        (9, "tracking", "held", 20_000_000)
+    np.testing.assert_allclose(document["position"], T_map_odom.translation, atol=1e-12)
 
 
 def _load(tmp_path, text: str):

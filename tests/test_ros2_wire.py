@@ -215,3 +215,63 @@ def test_status_goes_to_diagnostics_ok_warn_or_error_and_decodes_with_a_second_c
     publisher.publish_diagnostics(report)  # closed: nothing more goes out
     assert session.sent[-1][0] == key and len([s for s in session.sent if s[0] == key]) == 1
 
+
+
+def test_with_wheel_odometry_tf_carries_map_to_odom_and_never_a_second_parent_for_base_link(monkeypatch):
+    """REP 105: the robot's odometry publishes odom -> base_link, so cubeloc's tf says
+    map -> odom at the frame's stamp (the odometry interpolated there); a frame the odometry
+    does not cover gets no tf at all, never map -> base_link."""
+    import zenoh.ext
+
+    from positioning.tracking.odometry import OdometryBuffer
+
+    session = FakeSession()
+    monkeypatch.setattr(zenoh.ext, "declare_advanced_publisher",
+                        lambda s, key, **_: FakeSession._Entity(session.sent, key))
+    mount = Transform(np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float), [0.3, 0.0, 1.1])
+    frames = RobotFrames(mount, Transform(np.eye(3), [5.0, 2.0, 0.0]), "map", "base_link", "camera", "odom")
+    odometry = OdometryBuffer()
+    stamp_ns = 1_790_000_000_000_000_000
+    yaw = np.radians(25.0)
+    quaternion = [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)]
+    for k in range(6):  # 50 Hz, driving 0.5 m/s along x
+        odometry.add(stamp_ns - 50_000_000 + k * 20_000_000, [1.0 + 0.01 * k, -2.0, 0.0], quaternion)
+    publisher = Ros2Publisher(session, Ros2Config(enabled=True, publish_tf=True), frames, paper_camera(), odometry)
+    T = look_at(np.array([1.5, -1.2, 0.8]), np.zeros(3))
+    estimate = PoseEstimate(T, PoseState.TARGET, 3, (0, 1, 4), 0.1, np.eye(6) * 1e-6)
+    publisher.publish(1, stamp_ns, estimate)
+    publisher.publish(2, stamp_ns + 10**9, estimate)  # a second past the odometry: no tf
+    by_key = {topic.key: role for role, topic in publisher.topics.items()}
+    sent = [(by_key[key], decode(payload, by_key[key])) for key, payload, _ in session.sent]
+    tfs = [message for role, message in sent if role == "tf"]
+    assert len(tfs) == 1 and [role for role, _ in sent].count("pose") == 2
+    (transform,) = tfs[0].transforms
+    assert (transform.header.frame_id, transform.child_frame_id) == ("map", "odom")
+    t, q = transform.transform.translation, transform.transform.rotation
+    T_map_odom = Transform.from_quaternion(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
+    # odom -> base_link at the frame's stamp: 2.5 samples in, x = 1.025
+    T_odom_base = Transform.from_quaternion(np.array([1.025, -2.0, 0.0]), np.array(quaternion))
+    expected = frames.base_in_map(T, None)[0]
+    np.testing.assert_allclose((T_map_odom @ T_odom_base).translation, expected.translation, atol=1e-9)
+
+
+def test_the_robot_localization_example_reads_the_topics_and_frames_cubeloc_publishes():
+    """examples/ekf.yaml (docs/robot_localization.md): its pose input is the topic cubeloc
+    publishes under the namespace it assumes, in the frames cubeloc's defaults name, fused
+    absolute (x, y, yaw), and it keeps more history than a pose's latency."""
+    from pathlib import Path
+
+    import yaml
+
+    from daemon.config import FramesConfig
+
+    example = yaml.safe_load((Path(__file__).parents[1] / "examples" / "ekf.yaml").read_text())
+    ros2, frames = Ros2Config(enabled=True, namespace="/robot7"), FramesConfig()
+    local, global_ = example["ekf_odom"]["ros__parameters"], example["ekf_map"]["ros__parameters"]
+    assert global_["pose0"] == ros2.topic(ros2.topics.pose)
+    assert (global_["map_frame"], global_["odom_frame"], global_["base_link_frame"], global_["world_frame"]) == \
+        (frames.map_frame, frames.odom_frame, frames.base_frame, frames.map_frame)
+    assert (local["world_frame"], local["base_link_frame"]) == (frames.odom_frame, frames.base_frame)
+    assert [i for i, used in enumerate(global_["pose0_config"]) if used] == [0, 1, 5]  # x, y, yaw
+    assert global_["pose0_differential"] is False and len(global_["odom0_config"]) == 15
+    assert global_["smooth_lagged_data"] is True and global_["history_length"] >= 0.2

@@ -131,6 +131,12 @@ class OdometryBuffer:
             self._stamps.clear()
             self._samples.clear()
 
+    def pose_at(self, stamp_ns: int) -> Transform | None:
+        """``T_odom_base`` at ``stamp_ns``, interpolated between the samples around it (or
+        on the last two, at most ``max_extrapolation_s`` past the newest); None outside."""
+        with self._lock:
+            return self._at(stamp_ns)
+
     def _at(self, stamp_ns: int) -> Transform | None:
         stamps, samples = self._stamps, self._samples
         if len(samples) < 2 or stamp_ns < stamps[0]:
