@@ -24,6 +24,10 @@ from bench.scenarios import _render, _score, _track
 
 TITLE = "Wheel odometry in: vision alone and vision + wheel odometry on the same frames"
 SCENARIOS = ("spin_in_place", "blank_wall", "spin_on_axis", "passers_by")
+# map -> odom (REP 105) and its steps: a lap with the cube out of view for most of it, and
+# a blank wall; the spread of [frames] map_odom_spread_s (0: none)
+JUMP_SCENARIOS = ("long_lap", "blank_wall")
+SPREADS_S = (0.0, 0.5, 1.0)
 LEVER_M = 0.2  # the camera ahead of the base's axis...
 LEVER_OF = {"spin_on_axis": 0.0}  # ...except where the scenario puts it elsewhere (fakes/scenarios.py)
 
@@ -78,7 +82,75 @@ def run() -> str:
                 cells.append(f"{100 * s.coverage:.1f} %, RMS {s.rmse_m * 1000:.2f} mm, max {s.max_m * 1000:.1f}, "
                              f"inside 3 sigma {100 * s.consistent:.1f} %")
             rows.append([name, *cells])
+        jumps = [_jumps(root, Path(tmp), name) for name in JUMP_SCENARIOS]
     table = markdown_table(["scenario", "vision alone: frames with a pose, error",
                             "+ odometry as a bridge only (as_prior = false)", "+ odometry as bridge and motion prior (as_prior, the default)"],
                            rows)
-    return "\n".join([__doc__.split("\n\n", 1)[1].strip(), "", table])
+    jump_table = markdown_table(
+        ["scenario", "map -> base_link: largest step beyond the true motion",
+         *(f"map -> odom, spread {s:g} s: largest step" if s else "map -> odom: largest step" for s in SPREADS_S)],
+        jumps)
+    return "\n".join([__doc__.split("\n\n", 1)[1].strip(), "", table, "", JUMPS_TEXT, "", jump_table])
+
+
+JUMPS_TEXT = """**map -> odom (REP 105).** The same odometry, `cubeloc track --odometry --poses` (as
+bridge and prior); per frame with a pose, map -> base_link from the camera's pose, and
+map -> odom = map -> base_link after the inverse of the odometry's odom -> base_link at the
+frame's stamp (interpolated as the daemon does), raw and spread over a time constant
+(`[frames] map_odom_spread_s`). A step is the change from one frame to the next, mm and
+deg; for map -> base_link, beyond the truth's own motion over that frame. Each cell: the
+largest, and the frame's state and source."""
+
+
+def _jumps(root: Path, tmp: Path, name: str) -> list[str]:
+    """One row of the map -> odom table (JUMPS_TEXT)."""
+    import json
+
+    from fakes.odometry import simulate_odometry, write_odometry
+    from fakes.trajectories import DEFAULT_SECONDS, make_trajectory
+    from positioning.frames import RobotFrames, SpreadCorrection
+    from positioning.geometry import Transform
+    from positioning.tracking.odometry import OdometryBuffer
+    from positioning.trajectory_io import read_tum
+
+    sequence = _render(root, name)
+    seconds = DEFAULT_SECONDS[name]
+    xyz, quaternion = mount_of(make_trajectory(name, seconds)[0].T_world_camera, LEVER_OF.get(name, LEVER_M))
+    mount = Transform.from_quaternion(xyz, quaternion)
+    rows = simulate_odometry(name, seconds, mount)
+    odometry = tmp / f"{name}-jumps-odometry.jsonl"
+    write_odometry(odometry, rows)
+    config = tmp / f"{name}-jumps.toml"
+    _config(config, xyz, quaternion, True)
+    out = tmp / f"{name}-jumps.tum"
+    _track(REPO, sequence, out, True, ("--odometry", str(odometry), "--config", str(config)))
+    buffer = OdometryBuffer(max_extrapolation_s=1.0)
+    for row in rows:
+        buffer.add(row["stamp_ns"], row["position"], row["orientation"])
+    frames = RobotFrames(mount, Transform.identity())
+    truth = {p.stamp_ns: p.T_world_camera for p in read_tum(sequence / "groundtruth.tum")}
+    order = {stamp: i for i, stamp in enumerate(sorted(truth))}
+    poses = [json.loads(line) for line in out.with_suffix(".jsonl").read_text().splitlines()]
+    spreads = [SpreadCorrection(s) for s in SPREADS_S]
+    largest = [(0.0, 0.0, "")] * (1 + len(SPREADS_S))
+    last = None
+    for doc in poses:
+        stamp = doc["stamp_ns"]
+        T_odom_base = buffer.pose_at(stamp)
+        if T_odom_base is None:
+            continue
+        camera = Transform.from_quaternion(np.array(doc["position"]), np.array(doc["orientation"]))
+        base = frames.base_in_map(camera, None)[0]
+        true_base = frames.base_in_map(truth[stamp], None)[0]
+        values = [spread.update(stamp, base @ T_odom_base.inverse()) for spread in spreads]
+        if last is not None and order[stamp] == order[last[0]] + 1:  # consecutive frames
+            moved, true_moved = last[1].inverse() @ base, last[2].inverse() @ true_base
+            steps = [(1000 * float(np.linalg.norm(moved.translation - true_moved.translation)),
+                      float(np.degrees(moved.rotation_angle_to(true_moved))))]
+            steps += [(1000 * float(np.linalg.norm(v.translation - w.translation)), float(np.degrees(v.rotation_angle_to(w))))
+                      for v, w in zip(values, last[3], strict=True)]
+            where = f"{doc['state']}/{doc.get('source', '')}"
+            largest = [(max(a[0], s[0]), max(a[1], s[1]), where if s[0] > a[0] else a[2])
+                       for a, s in zip(largest, steps, strict=True)]
+        last = (stamp, base, true_base, values)
+    return [name, *(f"{mm:.1f} mm, {deg:.2f} deg ({where})" for mm, deg, where in largest)]

@@ -188,6 +188,9 @@ class FramesConfig(Section):
     base_frame: str = "base_link"
     camera_frame: str = "camera_optical"
     odom_frame: str = "odom"  # the wheel odometry's frame: the parent of base_frame in its odom -> base_link
+    # map -> odom on tf with its steps spread over time (s, time constant; 0: none) for
+    # controllers that dislike steps; map_odom carries the unspread value beside it
+    map_odom_spread_s: float = Field(0.0, ge=0.0, le=60.0)
 
     @field_validator("map_frame", "base_frame", "camera_frame", "odom_frame")
     @classmethod

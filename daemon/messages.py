@@ -67,13 +67,19 @@ def base_pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: R
 
 
 def map_odom_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, T_odom_base: Transform,
-                     published_ns: int | None = None) -> dict[str, Any]:
+                     spread: Transform | None = None, published_ns: int | None = None) -> dict[str, Any]:
     """The ``cubeloc.map_odom/1`` document: ``map`` -> ``odom`` from this frame's pose and the
     odometry's ``T_odom_base`` at its capture time (``frames.odom_in_map``), the same
-    ``seq`` and ``stamp_ns``, ``state`` and ``source`` as the camera's pose. Validated as /3."""
+    ``seq`` and ``stamp_ns``, ``state`` and ``source`` as the camera's pose, validated as /3;
+    and ``spread_position``, ``spread_orientation``: the value ``tf`` carries, with its
+    steps spread over time (``positioning.frames.SpreadCorrection``; ``spread`` None: the same)."""
     transform, covariance = frames.odom_in_map(estimate.T_world_camera, estimate.covariance, T_odom_base)
-    return _pose_document(MAP_ODOM_SCHEMA, seq, stamp_ns, estimate, transform, covariance, frames.map_frame,
-                          frames.odom_frame, published_ns, max_position_m=MAX_MAP_POSITION_M)
+    document = _pose_document(MAP_ODOM_SCHEMA, seq, stamp_ns, estimate, transform, covariance, frames.map_frame,
+                              frames.odom_frame, published_ns, max_position_m=MAX_MAP_POSITION_M)
+    spread = transform if spread is None else spread
+    document["spread_position"] = _finite_list(spread.translation, "spread position")
+    document["spread_orientation"] = _finite_list(spread.quaternion(), "spread orientation")
+    return document
 
 
 def _pose_document(schema: str, seq: int, stamp_ns: int, estimate: PoseEstimate, transform: Transform,
@@ -136,8 +142,8 @@ def base_pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: R
 
 
 def map_odom_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, T_odom_base: Transform,
-                     published_ns: int | None = None) -> bytes:
-    return encode(map_odom_payload(seq, stamp_ns, estimate, frames, T_odom_base, published_ns))
+                     spread: Transform | None = None, published_ns: int | None = None) -> bytes:
+    return encode(map_odom_payload(seq, stamp_ns, estimate, frames, T_odom_base, spread, published_ns))
 
 
 @dataclass(frozen=True)

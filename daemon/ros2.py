@@ -36,7 +36,7 @@ from calib.camera_info import CameraCalibration
 from daemon.messages import StatusReport
 from positioning.estimator import PoseEstimate, PoseSource
 from positioning.frames import RobotFrames
-from positioning.tracking.odometry import OdometryBuffer
+from positioning.geometry import Transform
 
 log = structlog.get_logger()
 
@@ -131,19 +131,20 @@ class Ros2Publisher:
     """The node and its publishers on a Zenoh session: ``publish(seq, stamp_ns, estimate)``
     per pose, the camera's CameraInfo at start and after a reload (transient local, depth
     1), ``publish_diagnostics`` per status; ``close`` undeclares everything (tokens first,
-    so the graph sees the node go). With ``odometry`` (the robot's wheel odometry), ``tf``
-    carries ``map`` -> ``odom`` (REP 105), never ``map`` -> ``base_link``: the odometry's
-    ``odom`` -> ``base_link`` is the base's only parent."""
+    so the graph sees the node go). With ``map_odom`` (the robot's wheel odometry in),
+    ``tf`` carries what ``publish_map_odom`` is given, ``map`` -> ``odom`` (REP 105), and
+    never ``map`` -> ``base_link``: the odometry's ``odom`` -> ``base_link`` is the base's
+    only parent."""
 
     def __init__(self, session, config, frames: RobotFrames, calibration: CameraCalibration,
-                 odometry: OdometryBuffer | None = None) -> None:
+                 map_odom: bool = False) -> None:
         import zenoh
         import zenoh.ext
 
         self._zenoh = zenoh
         self._types = typestore(config.distro)
         self._frames = frames
-        self._odometry = odometry
+        self._map_odom = map_odom
         self.session_id = str(session.info.zid())
         domain, namespace, node = config.domain_id, config.namespace, config.node_name
         self._node_name = node
@@ -205,21 +206,20 @@ class Ros2Publisher:
         out = {"pose": self._msg(POSE_TYPE, header=header, pose=with_covariance),
                "odometry": self._msg(ODOMETRY_TYPE, header=header, child_frame_id=frames.base_frame,
                                      pose=with_covariance, twist=twist)}
-        if "tf" in self.topics:
-            child, moved = frames.base_frame, transform
-            if self._odometry is not None:  # map -> odom at this frame's stamp; none without odometry there
-                T_odom_base = self._odometry.pose_at(stamp_ns)
-                if T_odom_base is None:
-                    return out
-                child, moved = frames.odom_frame, frames.odom_in_map(estimate.T_world_camera, None, T_odom_base)[0]
-            pose = self._pose(moved)
-            tf_transform = self._msg("geometry_msgs/msg/Transform",
-                                     translation=self._msg("geometry_msgs/msg/Vector3", x=pose.position.x,
-                                                           y=pose.position.y, z=pose.position.z),
-                                     rotation=pose.orientation)
-            out["tf"] = self._msg(TF_TYPE, transforms=[self._msg(
-                "geometry_msgs/msg/TransformStamped", header=header, child_frame_id=child, transform=tf_transform)])
+        if "tf" in self.topics and not self._map_odom:
+            out["tf"] = self._tf(stamp_ns, frames.base_frame, transform)
         return out
+
+    def _tf(self, stamp_ns: int, child_frame: str, transform: Transform):
+        """A TFMessage of ``map`` -> ``child_frame``."""
+        pose = self._pose(transform)
+        moved = self._msg("geometry_msgs/msg/Transform",
+                          translation=self._msg("geometry_msgs/msg/Vector3", x=pose.position.x, y=pose.position.y,
+                                                z=pose.position.z),
+                          rotation=pose.orientation)
+        return self._msg(TF_TYPE, transforms=[self._msg(
+            "geometry_msgs/msg/TransformStamped", header=self._header(stamp_ns, self._frames.map_frame),
+            child_frame_id=child_frame, transform=moved)])
 
     def diagnostics(self, report: StatusReport):
         """The DiagnosticArray of one status report: one status, named after the node."""
@@ -272,6 +272,11 @@ class Ros2Publisher:
             return
         for role, message in self.messages(stamp_ns, estimate).items():
             self._put(role, message)
+
+    def publish_map_odom(self, stamp_ns: int, T_map_odom: Transform) -> None:
+        """``map`` -> ``odom`` on ``tf`` (with ``publish_tf`` and ``map_odom``)."""
+        if not self._closed and self._map_odom and "tf" in self.topics:
+            self._put("tf", self._tf(stamp_ns, self._frames.odom_frame, T_map_odom))
 
     def publish_diagnostics(self, report: StatusReport) -> None:
         """``report`` on ``/diagnostics`` (with ``topics.diagnostics`` set)."""

@@ -37,6 +37,7 @@ from daemon.viewer import LiveViewer
 from daemon.zenoh_session import ZenohUnreachable, open_session
 from drivers.base import Camera, CameraSettings
 from positioning.estimator import FrameProcessor
+from positioning.frames import SpreadCorrection
 from positioning.tracking.odometry import OdometryPrior
 
 log = structlog.get_logger()
@@ -116,7 +117,7 @@ class Daemon:
                                              base_pose=config.frames.enabled, map_odom=self.odometry is not None)
             if config.ros2.enabled:
                 self._ros2 = Ros2Publisher(session, config.ros2, config.frames.robot_frames(),
-                                           self.prepared.calibration, self.odometry)
+                                           self.prepared.calibration, map_odom=self.odometry is not None)
             if self.odometry is not None:
                 self._odometry_in = OdometryInput(session, config, self.odometry)
             self._loop = loop
@@ -177,14 +178,19 @@ class Daemon:
 
             sinks.append(base_pose)
         if self.odometry is not None:
+            spread = SpreadCorrection(config.frames.map_odom_spread_s)
 
             def map_odom(seq: int, stamp_ns: int, estimate) -> None:
                 T_odom_base = self.odometry.pose_at(stamp_ns)
                 if T_odom_base is None:  # no odometry around this frame: no map -> odom for it
                     self._map_odom["no_odometry"] += 1
                     return
+                raw = frames.odom_in_map(estimate.T_world_camera, None, T_odom_base)[0]
+                spread_value = spread.update(stamp_ns, raw)
                 self._publisher.publish_map_odom(map_odom_message(seq, stamp_ns, estimate, frames, T_odom_base,
-                                                                  time.time_ns()))
+                                                                  spread_value, time.time_ns()))
+                if self._ros2 is not None:
+                    self._ros2.publish_map_odom(stamp_ns, spread_value)
                 self._map_odom["published"] += 1
 
             sinks.append(map_odom)

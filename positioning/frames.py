@@ -24,8 +24,10 @@ to first order.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from positioning.geometry import Transform
@@ -86,3 +88,30 @@ class RobotFrames:
         if covariance is None:
             return pose, None
         return pose, reframe_covariance(covariance, T_world_camera, T_camera_child, self.T_map_target)
+
+
+class SpreadCorrection:
+    """``map`` -> ``odom`` for controllers that dislike steps: each new value is approached
+    exponentially, with time constant ``seconds`` (63 % of a step after ``seconds``, 95 %
+    after three times that); 0 passes every value through. The translation is blended
+    linearly, the rotation along the geodesic. A slow drift of the odometry is followed
+    ``seconds`` late: its heading drift times ``seconds`` (0.2 deg/s and 1 s: 0.2 deg)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = float(seconds)
+        self._value: Transform | None = None
+        self._stamp_ns = 0
+
+    def update(self, stamp_ns: int, raw: Transform) -> Transform:
+        """The spread value at ``stamp_ns`` given the newest raw one (a stamp not after the
+        last one, the first value, or ``seconds`` 0: the raw value)."""
+        if self._value is None or self.seconds <= 0.0 or stamp_ns <= self._stamp_ns:
+            self._value = raw
+        else:
+            share = 1.0 - math.exp(-(stamp_ns - self._stamp_ns) / 1e9 / self.seconds)
+            turn = cv2.Rodrigues(self._value.rotation.T @ raw.rotation)[0].ravel() * share
+            self._value = Transform(self._value.rotation @ cv2.Rodrigues(turn)[0],
+                                    self._value.translation + share * (raw.translation - self._value.translation))
+        self._stamp_ns = stamp_ns
+        return self._value
+

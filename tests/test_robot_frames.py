@@ -104,12 +104,32 @@ def test_map_to_odom_composed_with_the_odometry_is_the_base_in_the_map_and_carri
     sigma = np.sqrt(np.diag(predicted))
     np.testing.assert_array_less(np.abs(np.cov(deltas.T) - predicted), 0.04 * np.outer(sigma, sigma))
     estimate = PoseEstimate(T_world_camera, PoseState.TRACKING, 0, (), 0.0, covariance, PoseSource.HELD)
-    document = map_odom_payload(9, 1_790_000_000_000_000_000, estimate, frames, T_odom_base, 1_790_000_000_020_000_000)
+    document = map_odom_payload(9, 1_790_000_000_000_000_000, estimate, frames, T_odom_base,
+                                published_ns=1_790_000_000_020_000_000)
     assert document["schema"] == "cubeloc.map_odom/1" and (document["frame_id"], document["child_frame_id"]) == \
         ("map", "odom")
     assert (document["seq"], document["state"], document["source"], document["latency_ns"]) == \
         (9, "tracking", "held", 20_000_000)
     np.testing.assert_allclose(document["position"], T_map_odom.translation, atol=1e-12)
+    assert document["spread_position"] == document["position"]  # nothing spread: the same
+
+
+def test_a_step_of_map_to_odom_is_spread_over_its_time_constant_and_a_steady_value_kept():
+    from positioning.frames import SpreadCorrection
+
+    before = Transform(np.eye(3), [1.0, 2.0, 0.0])
+    after = Transform(Rotation.from_euler("z", 4, degrees=True).as_matrix(), [1.1, 2.0, 0.0])  # the cube seen again
+    spread = SpreadCorrection(0.5)
+    stamps = [k * 100_000_000 for k in range(31)]  # 10 Hz for 3 s
+    values = [spread.update(s, before if s < 1_000_000_000 else after) for s in stamps]
+    steps = [np.linalg.norm(b.translation - a.translation) for a, b in zip(values, values[1:], strict=False)]
+    assert max(steps) < 0.1 * 0.2  # no step above a fifth of the 0.1 m jump (exp(-0.2) spreads it)
+    done = values[14]  # the jump is first seen at 1.0 s, 0.1 s after the last value: 1.4 s is 0.5 s on, 63 %
+    assert abs(done.translation[0] - (1.0 + 0.1 * (1 - np.exp(-1.0)))) < 1e-9
+    assert np.linalg.norm(values[-1].translation - after.translation) < 0.1 * np.exp(-3.9)
+    assert abs(values[-1].rotation_angle_to(after)) < np.radians(4) * np.exp(-3.9)
+    instant = SpreadCorrection(0.0)
+    assert instant.update(0, before) is before and instant.update(1, after) is after
 
 
 def _load(tmp_path, text: str):

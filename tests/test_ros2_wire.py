@@ -219,40 +219,31 @@ def test_status_goes_to_diagnostics_ok_warn_or_error_and_decodes_with_a_second_c
 
 def test_with_wheel_odometry_tf_carries_map_to_odom_and_never_a_second_parent_for_base_link(monkeypatch):
     """REP 105: the robot's odometry publishes odom -> base_link, so cubeloc's tf says
-    map -> odom at the frame's stamp (the odometry interpolated there); a frame the odometry
-    does not cover gets no tf at all, never map -> base_link."""
+    map -> odom (what it is given, stamped as given) and the poses carry no tf of their own."""
     import zenoh.ext
-
-    from positioning.tracking.odometry import OdometryBuffer
 
     session = FakeSession()
     monkeypatch.setattr(zenoh.ext, "declare_advanced_publisher",
                         lambda s, key, **_: FakeSession._Entity(session.sent, key))
     mount = Transform(np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float), [0.3, 0.0, 1.1])
     frames = RobotFrames(mount, Transform(np.eye(3), [5.0, 2.0, 0.0]), "map", "base_link", "camera", "odom")
-    odometry = OdometryBuffer()
-    stamp_ns = 1_790_000_000_000_000_000
-    yaw = np.radians(25.0)
-    quaternion = [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)]
-    for k in range(6):  # 50 Hz, driving 0.5 m/s along x
-        odometry.add(stamp_ns - 50_000_000 + k * 20_000_000, [1.0 + 0.01 * k, -2.0, 0.0], quaternion)
-    publisher = Ros2Publisher(session, Ros2Config(enabled=True, publish_tf=True), frames, paper_camera(), odometry)
+    publisher = Ros2Publisher(session, Ros2Config(enabled=True, publish_tf=True), frames, paper_camera(),
+                              map_odom=True)
     T = look_at(np.array([1.5, -1.2, 0.8]), np.zeros(3))
     estimate = PoseEstimate(T, PoseState.TARGET, 3, (0, 1, 4), 0.1, np.eye(6) * 1e-6)
+    stamp_ns = 1_790_000_000_000_000_000
     publisher.publish(1, stamp_ns, estimate)
-    publisher.publish(2, stamp_ns + 10**9, estimate)  # a second past the odometry: no tf
+    T_map_odom = frames.odom_in_map(T, None, Transform(np.eye(3), [1.025, -2.0, 0.0]))[0]
+    publisher.publish_map_odom(stamp_ns, T_map_odom)
     by_key = {topic.key: role for role, topic in publisher.topics.items()}
     sent = [(by_key[key], decode(payload, by_key[key])) for key, payload, _ in session.sent]
     tfs = [message for role, message in sent if role == "tf"]
-    assert len(tfs) == 1 and [role for role, _ in sent].count("pose") == 2
+    assert len(tfs) == 1 and [role for role, _ in sent].count("pose") == 1
     (transform,) = tfs[0].transforms
     assert (transform.header.frame_id, transform.child_frame_id) == ("map", "odom")
-    t, q = transform.transform.translation, transform.transform.rotation
-    T_map_odom = Transform.from_quaternion(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
-    # odom -> base_link at the frame's stamp: 2.5 samples in, x = 1.025
-    T_odom_base = Transform.from_quaternion(np.array([1.025, -2.0, 0.0]), np.array(quaternion))
-    expected = frames.base_in_map(T, None)[0]
-    np.testing.assert_allclose((T_map_odom @ T_odom_base).translation, expected.translation, atol=1e-9)
+    assert transform.header.stamp.sec * 10**9 + transform.header.stamp.nanosec == stamp_ns
+    t = transform.transform.translation
+    np.testing.assert_allclose([t.x, t.y, t.z], T_map_odom.translation, atol=1e-12)
 
 
 def test_the_robot_localization_example_reads_the_topics_and_frames_cubeloc_publishes():
