@@ -185,3 +185,26 @@ def test_a_wall_retextured_changes_that_wall_and_no_other():
         a = render_view(pose, room=True, seed=1, hidden_tags=make_cube().ids, noise_sigma=0.0)
         b = render_view(pose, room=changed, seed=1, hidden_tags=make_cube().ids, noise_sigma=0.0)
         assert bool(np.mean(np.abs(a.astype(int) - b.astype(int))) > 10) is differs
+
+
+def test_a_response_curve_moves_a_blurred_edge_into_the_black_side():
+    """``apply_sensor(response_gamma=0.8)``: a black/white step blurred by 1.5 px is found
+    at its mid-level 0.11 of the blur's sigma (0.16 px) into the black side (the white one
+    grows), as a real camera's non-linear response moves it; gamma 1 leaves it in place."""
+    from scipy.stats import norm
+
+    from fakes.render import apply_sensor
+
+    columns = np.arange(200, dtype=np.float32) - 100.0 + 0.5  # the step at x = 0 (between columns 99 and 100)
+    radiance = np.tile(np.where(columns < 0, 30 / 255, 220 / 255).astype(np.float32), (40, 1))
+
+    def crossing(gamma: float) -> float:
+        row = apply_sensor(radiance, noise_sigma=0.0, seed=0, blur_sigma_px=1.5, response_gamma=gamma)[20]
+        level = (float(row[:40].mean()) + float(row[-40:].mean())) / 2
+        i = int(np.argmax(row >= level))
+        return float(columns[i - 1] + (level - row[i - 1]) / (float(row[i]) - float(row[i - 1])))
+
+    b, w = (30 / 255) ** 0.8, (220 / 255) ** 0.8
+    expected = 1.5 * norm.ppf((((b + w) / 2) ** (1 / 0.8) - 30 / 255) / (190 / 255))  # where the curve puts mid-level
+    assert abs(crossing(1.0)) < 0.03
+    assert abs(crossing(0.8) - expected) < 0.03 and expected < -0.1  # x < 0 is the black side
