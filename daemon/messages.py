@@ -82,6 +82,12 @@ def map_odom_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: Ro
     return document
 
 
+def pose_label(state: str, source: str | None) -> str:
+    """A pose's state for people: with its source where that says more (``tracking (held)``;
+    a ``cubeloc.pose/1`` document has none)."""
+    return state if source in (None, state) else f"{state} ({source})"
+
+
 def _pose_document(schema: str, seq: int, stamp_ns: int, estimate: PoseEstimate, transform: Transform,
                    covariance: np.ndarray | None, frame_id: str, child_frame_id: str, published_ns: int | None,
                    max_position_m: float = MAX_POSITION_M) -> dict[str, Any]:

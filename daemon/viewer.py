@@ -48,6 +48,7 @@ from calib.camera_info import CameraCalibration
 from cubeloc.errors import ConfigError, InputFileError
 from daemon.config import FoxgloveConfig
 from daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from daemon.messages import pose_label
 from positioning.estimator import FeatureState, FrameResult
 from positioning.frames import RobotFrames
 from positioning.geometry import Transform
@@ -256,7 +257,8 @@ class SceneChannels:
             points.append(fm.PointsAnnotation(
                 timestamp=stamp, type=fm.PointsAnnotationType.Points, thickness=4.0, outline_colors=colours,
                 points=px(view.features)))
-        state = result.estimate.state.value if result.estimate is not None else result.status
+        estimate = result.estimate
+        state = pose_label(estimate.state.value, estimate.source.value) if estimate is not None else result.status
         texts.append(label(stamp, fm.Point2(x=8.0, y=20.0), state, size=16.0))
         return fm.ImageAnnotations(points=points, texts=texts)
 

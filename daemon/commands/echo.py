@@ -46,9 +46,9 @@ def format_pose(name: str, doc: dict, rate_hz: float | None) -> str:
     x, y, z = doc["position"]
     qx, qy, qz, qw = doc["orientation"]
     rate = f"{rate_hz:5.1f} Hz" if rate_hz is not None else "    - Hz"  # one pose has no rate yet
-    # the source where it says more than the state (tracking (held)); a /1 pose has none
-    source = doc.get("source")
-    state = doc["state"] if source in (None, doc["state"]) else f"{doc['state']} ({source})"
+    from daemon.messages import pose_label
+
+    state = pose_label(doc["state"], doc.get("source"))
     return (
         f"{name}  pose  seq {doc['seq']:>6}  {stamp}  "
         f"xyz [{x:+8.4f} {y:+8.4f} {z:+8.4f}] m  q [{qx:+.4f} {qy:+.4f} {qz:+.4f} {qw:+.4f}]  "
