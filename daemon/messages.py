@@ -66,14 +66,14 @@ def base_pose_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: R
     return document
 
 
-def map_odom_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, T_odom_base: Transform,
-                     spread: Transform | None = None, published_ns: int | None = None) -> dict[str, Any]:
-    """The ``cubeloc.map_odom/1`` document: ``map`` -> ``odom`` from this frame's pose and the
-    odometry's ``T_odom_base`` at its capture time (``frames.odom_in_map``), the same
+def map_odom_payload(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, transform: Transform,
+                     covariance: np.ndarray | None, spread: Transform | None = None,
+                     published_ns: int | None = None) -> dict[str, Any]:
+    """The ``cubeloc.map_odom/1`` document: ``map`` -> ``odom`` (``transform`` and its
+    ``covariance``, as ``frames.odom_in_map`` gives them for this frame's pose), the same
     ``seq`` and ``stamp_ns``, ``state`` and ``source`` as the camera's pose, validated as /3;
     and ``spread_position``, ``spread_orientation``: the value ``tf`` carries, with its
     steps spread over time (``positioning.frames.SpreadCorrection``; ``spread`` None: the same)."""
-    transform, covariance = frames.odom_in_map(estimate.T_world_camera, estimate.covariance, T_odom_base)
     document = _pose_document(MAP_ODOM_SCHEMA, seq, stamp_ns, estimate, transform, covariance, frames.map_frame,
                               frames.odom_frame, published_ns, max_position_m=MAX_MAP_POSITION_M)
     spread = transform if spread is None else spread
@@ -147,9 +147,10 @@ def base_pose_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: R
     return encode(base_pose_payload(seq, stamp_ns, estimate, frames, published_ns))
 
 
-def map_odom_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, T_odom_base: Transform,
-                     spread: Transform | None = None, published_ns: int | None = None) -> bytes:
-    return encode(map_odom_payload(seq, stamp_ns, estimate, frames, T_odom_base, spread, published_ns))
+def map_odom_message(seq: int, stamp_ns: int, estimate: PoseEstimate, frames: RobotFrames, transform: Transform,
+                     covariance: np.ndarray | None, spread: Transform | None = None,
+                     published_ns: int | None = None) -> bytes:
+    return encode(map_odom_payload(seq, stamp_ns, estimate, frames, transform, covariance, spread, published_ns))
 
 
 @dataclass(frozen=True)

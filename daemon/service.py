@@ -185,9 +185,9 @@ class Daemon:
                 if T_odom_base is None:  # no odometry around this frame: no map -> odom for it
                     self._map_odom["no_odometry"] += 1
                     return
-                raw = frames.odom_in_map(estimate.T_world_camera, None, T_odom_base)[0]
+                raw, covariance = frames.odom_in_map(estimate.T_world_camera, estimate.covariance, T_odom_base)
                 spread_value = spread.update(stamp_ns, raw)
-                self._publisher.publish_map_odom(map_odom_message(seq, stamp_ns, estimate, frames, T_odom_base,
+                self._publisher.publish_map_odom(map_odom_message(seq, stamp_ns, estimate, frames, raw, covariance,
                                                                   spread_value, time.time_ns()))
                 if self._ros2 is not None:
                     self._ros2.publish_map_odom(stamp_ns, spread_value)

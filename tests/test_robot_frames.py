@@ -104,7 +104,7 @@ def test_map_to_odom_composed_with_the_odometry_is_the_base_in_the_map_and_carri
     sigma = np.sqrt(np.diag(predicted))
     np.testing.assert_array_less(np.abs(np.cov(deltas.T) - predicted), 0.04 * np.outer(sigma, sigma))
     estimate = PoseEstimate(T_world_camera, PoseState.TRACKING, 0, (), 0.0, covariance, PoseSource.HELD)
-    document = map_odom_payload(9, 1_790_000_000_000_000_000, estimate, frames, T_odom_base,
+    document = map_odom_payload(9, 1_790_000_000_000_000_000, estimate, frames, T_map_odom, predicted,
                                 published_ns=1_790_000_000_020_000_000)
     assert document["schema"] == "cubeloc.map_odom/1" and (document["frame_id"], document["child_frame_id"]) == \
         ("map", "odom")
