@@ -32,6 +32,7 @@ VERB_MODULES = (
     "daemon.commands.generate",
     "daemon.commands.calibrate",
     "daemon.commands.calibrate_target",
+    "daemon.commands.calibrate_mount",
     "daemon.commands.doctor",
     "daemon.commands.map",
 )

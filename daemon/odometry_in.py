@@ -44,6 +44,40 @@ def parse_odometry(doc) -> tuple[int, list[float], list[float]]:
     return int(doc["stamp_ns"]), [float(v) for v in doc["position"]], [float(v) for v in doc["orientation"]]
 
 
+def read_odometry_file(path) -> list[tuple[int, int, list[float], list[float]]]:
+    """The samples of a file of ``cubeloc.odometry/1`` documents, one per line, in the
+    order they arrived: (arrival_ns, stamp_ns, position, orientation), the arrival being
+    the row's ``arrival_ns`` or else its stamp. InputFileError naming the line otherwise."""
+    from cubeloc.jsonlines import read_json_lines
+
+    def parse(row: dict) -> tuple[int, int, list[float], list[float]]:
+        stamp, position, orientation = parse_odometry(row)
+        return int(row.get("arrival_ns", stamp)), stamp, position, orientation
+
+    return read_json_lines(path, parse, ODOMETRY_SCHEMA)
+
+
+class OdometryLog(OdometryBuffer):
+    """A buffer that also keeps every sample it accepts as a ``cubeloc.odometry/1`` row
+    with its ``arrival_ns`` (``cubeloc record --odometry``): what ``cubeloc track
+    --odometry`` and ``cubeloc calibrate-mount`` read back."""
+
+    def __init__(self, odom_frame: str = "odom", base_frame: str = "base_link", **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.frames = (odom_frame, base_frame)
+        self.rows: list[dict] = []
+        self.key = ""  # the Zenoh key it is fed from, for messages
+
+    def add(self, stamp_ns: int, position, quaternion, now_ns: int | None = None) -> str | None:
+        problem = super().add(stamp_ns, position, quaternion, now_ns)
+        if problem is None:
+            self.rows.append({"schema": ODOMETRY_SCHEMA, "stamp_ns": int(stamp_ns), "frame_id": self.frames[0],
+                              "child_frame_id": self.frames[1], "position": [float(v) for v in position],
+                              "orientation": [float(v) for v in quaternion],
+                              "arrival_ns": int(now_ns if now_ns is not None else stamp_ns)})
+        return problem
+
+
 class OdometryInput:
     def __init__(self, session, config, buffer: OdometryBuffer) -> None:
         self.buffer = buffer

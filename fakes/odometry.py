@@ -42,17 +42,30 @@ def _planar(T_world_camera: Transform, T_base_camera: Transform) -> tuple[float,
 
 
 def simulate_odometry(trajectory: str, seconds: float, T_base_camera: Transform, rate_hz: float = 50.0,
-                      scale_error: float = 0.015, turn_error: float = 0.01, heading_drift_deg_s: float = 0.2,
-                      noise_m: float = 0.0001, noise_rad: float = 0.0001, latency_s: float = 0.03,
-                      phase_s: float = 0.007, seed: int = 0) -> list[dict]:
-    from fakes.trajectories import EPOCH_NS, make_trajectory, trajectory_at
+                      phase_s: float = 0.007, **errors) -> list[dict]:
+    """The wheels' odometry along the named camera trajectory, the base under the camera as
+    ``T_base_camera`` says (``wheel_odometry`` has the errors)."""
+    from fakes.trajectories import make_trajectory, trajectory_at
 
     make_trajectory(trajectory, seconds, rate_hz)  # checks the name and the timing
     count = int(np.floor((seconds - phase_s) * rate_hz + 1e-9))
     times = phase_s + np.arange(count) / rate_hz  # the robot's own clock phase, not the camera's
     truth = trajectory_at(trajectory, times, seconds)
+    return wheel_odometry(times, [_planar(T, T_base_camera) for T in truth], **errors)
+
+
+def wheel_odometry(times: np.ndarray, planar: list[tuple[float, float, float]], scale_error: float = 0.015,
+                   turn_error: float = 0.01, heading_drift_deg_s: float = 0.2, noise_m: float = 0.0001,
+                   noise_rad: float = 0.0001, latency_s: float = 0.03, slip: tuple[float, float] | None = None,
+                   seed: int = 0) -> list[dict]:
+    """Odometry rows for the base's true ``planar`` poses (x, y, heading) at ``times``
+    (seconds from the epoch), as wheels measure them; ``slip`` = (time s, metres): the
+    wheels turn that much further than the base moves in the 0.2 s from that time (a
+    wheel spinning on a slippery patch)."""
+    from fakes.trajectories import EPOCH_NS
+
+    rate_hz = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 50.0
     rng = np.random.default_rng(seed)
-    planar = [_planar(T, T_base_camera) for T in truth]
     x, y, heading = 0.0, 0.0, 0.0
     rows = []
     for k, t in enumerate(times):
@@ -63,6 +76,8 @@ def simulate_odometry(trajectory: str, seconds: float, T_base_camera: Transform,
             ahead, left = math.cos(h0) * dx + math.sin(h0) * dy, -math.sin(h0) * dx + math.cos(h0) * dy
             turn = math.remainder(h1 - h0, 2 * math.pi)
             ahead, left = (v * (1 + scale_error) + rng.normal(0, noise_m) for v in (ahead, left))
+            if slip is not None and slip[0] <= t < slip[0] + 0.2:
+                ahead += slip[1] * (t - times[k - 1]) / 0.2
             turn = turn * (1 + turn_error) + math.radians(heading_drift_deg_s) / rate_hz + rng.normal(0, noise_rad)
             x += math.cos(heading) * ahead - math.sin(heading) * left
             y += math.sin(heading) * ahead + math.cos(heading) * left
@@ -79,3 +94,24 @@ def write_odometry(path: Path, rows: list[dict]) -> None:
     from cubeloc.atomic import atomic_write_text
 
     atomic_write_text(Path(path), "".join(json.dumps(row) + "\n" for row in rows))
+
+
+def figure_eight(times_s: np.ndarray, centre=(0.0, 0.0), size_m: float = 1.0, period_s: float = 20.0
+                 ) -> list[tuple[float, float, float]]:
+    """A base driving figure-eights (x, y, heading) at ``times_s``: the lemniscate of Gerono
+    ``size_m`` from its centre to either end, once round per ``period_s``. Each lobe turns
+    the base ~270 deg, one each way, at up to ~50 deg/s for the defaults."""
+    w = 2 * math.pi / period_s
+    t = np.asarray(times_s, np.float64)
+    x = centre[0] + size_m * np.sin(w * t)
+    y = centre[1] + 0.5 * size_m * np.sin(2 * w * t)
+    heading = np.unwrap(np.arctan2(size_m * w * np.cos(2 * w * t), size_m * w * np.cos(w * t)))
+    return [(float(a), float(b), float(h)) for a, b, h in zip(x, y, heading, strict=True)]
+
+
+def camera_on_base(planar: list[tuple[float, float, float]], T_base_camera: Transform, floor_z: float = 0.0
+                   ) -> list[Transform]:
+    """T_world_camera of a camera mounted at ``T_base_camera`` on a base at the ``planar``
+    poses, its origin on the floor (world z = ``floor_z``, world z up)."""
+    return [Transform(Rotation.from_euler("z", h).as_matrix(), np.array([x, y, floor_z])) @ T_base_camera
+            for x, y, h in planar]

@@ -196,3 +196,63 @@ def _env(tmp_path):
     import os
 
     return {**os.environ, "CUBELOC_LOCK_DIR": str(tmp_path / "locks")}
+
+
+def test_record_with_odometry_keeps_what_the_robot_sends_as_it_arrived(cli, tmp_path):
+    """``--odometry``: the samples that arrive over Zenoh on [odometry]'s key while the
+    frames are recorded go to DIR/odometry.jsonl, readable by calibrate-mount and track; an
+    unreadable one is counted, not kept."""
+    import json
+
+    import zenoh
+    from helpers import free_port
+
+    from daemon.odometry_in import read_odometry_file
+
+    source = tmp_path / "source"
+    image = np.full((48, 64), 7, np.uint8)
+    with SequenceWriter(source) as writer:
+        for k in range(40):  # 2 s at the recorded pace
+            writer.write(1_000_000_000 + k * 50_000_000, image)
+    port = free_port()
+    config = tmp_path / "cubeloc.toml"
+    config.write_text(f'name = "rec"\n[zenoh]\nmulticast_scouting = false\nconnect = ["tcp/127.0.0.1:{port}"]\n'
+                      '[odometry]\nenabled = true\nsource = "json"\n')
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    session = zenoh.open(conf)
+    done = threading.Event()
+
+    def wheels():  # 50 Hz, stamped as measured, one unreadable sample among them
+        k = 0
+        while not done.is_set():
+            stamp = time.time_ns()
+            session.put("cubeloc/rec/odometry", b"{broken" if k == 5 else json.dumps({
+                "schema": "cubeloc.odometry/1", "stamp_ns": stamp, "frame_id": "odom", "child_frame_id": "base_link",
+                "position": [0.01 * k, 0.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0]}))
+            k += 1
+            time.sleep(0.02)
+
+    sender = threading.Thread(target=wheels, daemon=True)
+    sender.start()
+    try:
+        result = cli("record", "--camera", f"replay:{source}@pace", "--out", str(tmp_path / "drive"), "--odometry",
+                     "--config", str(config))
+    finally:
+        done.set()
+        sender.join()
+        session.close()
+    assert result.returncode == 0, result.stderr
+    rows = read_odometry_file(tmp_path / "drive" / "odometry.jsonl")
+    assert len(rows) >= 10, result.stdout
+    assert f"recorded {len(rows)} odometry samples" in result.stdout
+    stamps = [stamp for _, stamp, _, _ in rows]
+    assert stamps == sorted(stamps) and all(arrival >= stamp for arrival, stamp, _, _ in rows)
+    assert all(position[1:] == [0.0, 0.0] for _, _, position, _ in rows)
+    assert len(read_sequence_index(tmp_path / "drive")) == 40
+
+
+def test_record_odometry_needs_a_sequence(cli, tmp_path):
+    assert_user_error(cli("record", "--mcap", str(tmp_path / "x.mcap"), "--odometry"), "record --odometry: give --out")

@@ -1,10 +1,13 @@
-"""``cubeloc record --out DIR [--mcap OUT.mcap] [--camera SOURCE] [--frames N] [--seconds S]``.
+"""``cubeloc record --out DIR [--mcap OUT.mcap] [--camera SOURCE] [--frames N] [--seconds S] [--odometry]``.
 
 Records any camera source (``aravis[:ID]``, ``replay:DIR``, ``synthetic:NAME``) into a
 sequence in the EuRoC layout, and with ``--mcap`` (or instead of it) the camera image
 channel of the Foxglove viewer (``/camera/image``, scaled and rate-limited by ``[foxglove]``,
 with ``/camera/calibration`` when the config's calibration file is readable) into an MCAP
-file. Ctrl-C or SIGTERM only set the stop event; the recording loop ends and the writers
+file. ``--odometry`` also records the robot's wheel odometry, as the config's ``[odometry]``
+names it (source and topic, over the config's Zenoh), to ``DIR/odometry.jsonl``
+(``cubeloc.odometry/1`` rows with their arrival time: ``cubeloc track --odometry``,
+``cubeloc calibrate-mount``). Ctrl-C or SIGTERM only set the stop event; the recording loop ends and the writers
 close, so what is on disk is a valid sequence and a finished MCAP file.
 """
 
@@ -31,6 +34,9 @@ def register(subparsers) -> None:
                         "aravis, aravis:SERIAL, aravis:192.168.1.20, replay:DIR")
     parser.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
     parser.add_argument("--seconds", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--odometry", action="store_true",
+                        help="also record the wheel odometry that [odometry] names (source, topic; over [zenoh]) to "
+                             "DIR/odometry.jsonl, for cubeloc calibrate-mount and cubeloc track --odometry")
     parser.add_argument("--config", metavar="FILE", help="TOML config (camera settings, logging)")
     parser.set_defaults(func=run)
 
@@ -49,6 +55,8 @@ def run(args) -> int:
         raise ConfigError(f"--seconds {args.seconds}: expected a positive duration")
     if args.out is None and args.mcap is None:
         raise ConfigError("record: give --out DIR (a sequence), --mcap OUT.mcap, or both")
+    if args.odometry and args.out is None:
+        raise ConfigError("record --odometry: give --out DIR; the odometry goes to DIR/odometry.jsonl")
     config = load_config(args.config)
     configure_logging(config.logging.level, config.logging.format, stream=sys.stderr)
     out = Path(args.out) if args.out else None
@@ -57,9 +65,12 @@ def run(args) -> int:
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    odometry = None
     try:
         camera = make_camera(args.camera or config.camera.source, config.camera.settings())
-        with camera:  # opened before the directory is made: a bad camera leaves nothing behind
+        with camera, contextlib.ExitStack() as wheels:  # the camera opened before the directory is made
+            if args.odometry:
+                odometry = wheels.enter_context(_odometry_in(config))
             camera.start()
             with contextlib.ExitStack() as stack:
                 writer = _Writers(stack.enter_context(SequenceWriter(out)) if out is not None else None,
@@ -75,7 +86,38 @@ def run(args) -> int:
     print(f"recorded {summary.frames} frames in {summary.seconds:.1f} s to {where} "
           f"({summary.reason}); dropped: {stats.incomplete} incomplete, {stats.bad_timestamp} bad "
           f"timestamps, {stats.frame_id_gaps} frame-id gaps; reconnects: {stats.reconnects}")
+    if odometry is not None:
+        import json
+
+        from cubeloc.atomic import atomic_write_text
+
+        path = out / "odometry.jsonl"
+        atomic_write_text(path, "".join(json.dumps(row) + "\n" for row in odometry.rows))
+        dropped = ", ".join(f"{n} {reason}" for reason, n in odometry.stats.dropped.items()) or "none"
+        print(f"recorded {len(odometry.rows)} odometry samples to {path} (dropped: {dropped})")
+        if not odometry.rows:
+            print(f"warning: no odometry arrived on {odometry.key}: is the robot's odometry running, and are "
+                  "[odometry] source and topic right?", file=sys.stderr)
     return 0
+
+
+@contextlib.contextmanager
+def _odometry_in(config):
+    """The wheel odometry that ``[odometry]`` names, kept as it arrives (an ``OdometryLog``,
+    with the Zenoh key it listens on as ``key``), while the recording runs."""
+    from daemon.odometry_in import OdometryInput, OdometryLog
+    from daemon.zenoh_session import open_session
+
+    kept = OdometryLog(config.frames.odom_frame, config.frames.base_frame, capacity=1,
+                       stale_s=config.odometry.stale_s)
+    session = open_session(config.zenoh, purpose="record")
+    try:
+        subscriber = OdometryInput(session, config, kept)
+        kept.key = subscriber.key
+        yield kept
+        subscriber.close()
+    finally:
+        session.close()
 
 
 class _Writers:

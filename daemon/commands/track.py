@@ -208,27 +208,10 @@ class _OdometryReplay:
     """The samples of an odometry file, given to the buffer as they would have arrived."""
 
     def __init__(self, path: Path, buffer) -> None:
-        import json
-
-        from cubeloc.errors import InputFileError
-        from daemon.odometry_in import parse_odometry
+        from daemon.odometry_in import read_odometry_file
 
         self.buffer = buffer
-        self.rows = []
-        try:
-            lines = path.read_text(encoding="utf-8").splitlines()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise InputFileError(f"{path}: cannot read ({exc})") from None
-        for number, line in enumerate(lines, start=1):
-            if not line.strip():
-                continue
-            try:
-                row = json.loads(line)
-                stamp, position, orientation = parse_odometry(row)
-                arrival = int(row.get("arrival_ns", stamp))
-            except (ValueError, KeyError, TypeError) as exc:
-                raise InputFileError(f"{path}:{number}: not a cubeloc.odometry/1 document ({exc})") from None
-            self.rows.append((arrival, stamp, position, orientation))
+        self.rows = read_odometry_file(path)  # a bad file stops here, with one line
         self._next = 0  # the file's order is the order they arrived in
 
     def feed(self, now_ns: int) -> None:
