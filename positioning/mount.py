@@ -23,10 +23,16 @@ The wheels measure distances and turns with a scale error of their own (1-2 %), 
 not the mount's: the drive's distance and turn scales are solved with the mount (the
 camera is metric) and reported, so that a wheel calibrated wrong does not bend the lever.
 
+Away from the target the camera's metric is the tracker's map, whose scale may be off by
+about a percent; a camera that sees every motion 1 % large sees the lever 1 % long. The
+map's scale is one more unknown, with a 1 % prior, pinned against the wheels' by the
+stretches the target measured (their scale is exact).
+
 Solved in two steps: a closed form (the turn axis, then the yaw by a search over the
 circle with the lever and the distance scale linear at each yaw), then a joint robust
-least squares over the rotation, the lever's x and y and the two scales. The covariance
-is the fit's (Gauss-Newton) scaled by its residuals where they exceed the noise assumed.
+least squares over the rotation, the lever's x and y, the wheels' two scales and heading
+drift, and the map's scale. The covariance is the fit's (Gauss-Newton, the prior in it)
+scaled by its residuals where they exceed the noise assumed.
 """
 
 from __future__ import annotations
@@ -43,7 +49,6 @@ from positioning.geometry import Transform
 
 MIN_TURN_DEG = 20.0  # the largest turn between two poses of a pair must reach this
 MIN_PAIRS = 8
-MIN_TARGET_PAIRS = 4  # stretches measured by the target at both ends: enough to solve the map's scale
 MAX_SCALE_ERROR = 0.15  # a wheel scale more than 15 % off is a wrong file or wrong units, not wear
 
 
@@ -62,9 +67,9 @@ class MountNoise:
 
     camera_m: float = 0.001
     camera_rad: float = math.radians(0.05)
-    # the map's scale away from the target (tracker drift: docs/tracker.md), exact on it: a
-    # camera that saw every motion 1 % large sees the lever 1 % long, and nothing in the
-    # drive tells the two apart (the wheels' own scale is free)
+    # the prior of the map's scale away from the target (tracker drift: docs/tracker.md;
+    # exact on it): a camera that saw every motion 1 % large sees the lever 1 % long, and
+    # only the stretches the target measured tell the two apart
     map_scale: float = 0.01
     wheel_m: float = 0.001
     wheel_per_m: float = 0.005
@@ -90,7 +95,9 @@ class MountResult:
     distance_scale: float  # odometry distance / true distance
     turn_scale: float  # odometry turn / true turn
     heading_drift_deg_s: float  # the odometry's heading drift
-    map_scale: float | None  # the map's scale against the target's (None: not solved, too few target stretches)
+    map_scale: float | None  # the map's scale against the target's (None: every stretch measured by the target)
+    map_scale_sigma: float | None  # its standard deviation (the prior's where the target measured too little)
+    target_pairs: int  # stretches the target measured at both ends
     pairs: int
     used_pairs: int  # inside the robust fit's limits
     residual_m: float  # RMS of the translation residuals (metres)
@@ -201,15 +208,19 @@ def solve_mount(pairs: list[MountPair], height_m: float | None = None, height_so
     sigma_r = np.hypot(noise.camera_rad, noise.wheel_rad)
 
     on_target = np.array([p.on_target for p in pairs])
-    # the map's scale against the target's, where the target measured enough of the drive to
-    # pin the wheels' scale (else the two cannot be told apart, and the map's is a prior)
-    map_free = int(on_target.sum()) >= MIN_TARGET_PAIRS and not on_target.all()
+    # the map's scale against the target's: an unknown with the prior ``noise.map_scale``,
+    # which the stretches the target measured (their scale exact) pin against the wheels'
+    mapped = not on_target.all()
 
     def unpack(x: np.ndarray) -> tuple[Transform, float, float, float, float]:
         mount = Transform(Rotation.from_rotvec(x[:3]).as_matrix() @ rotation0, np.array([x[3], x[4], z]))
-        return mount, 1.0 + x[5], 1.0 + x[6], x[7], (1.0 + x[8]) if map_free else 1.0
+        return mount, 1.0 + x[5], 1.0 + x[6], x[7], (1.0 + x[8]) if mapped else 1.0
 
     def residuals(x: np.ndarray) -> np.ndarray:
+        prior = [x[8:9] / noise.map_scale] if mapped else []
+        return np.concatenate([pair_residuals(x), *prior])
+
+    def pair_residuals(x: np.ndarray) -> np.ndarray:
         mount, distance_scale, turn_scale, drift, map_scale = unpack(x)
         inverse = mount.inverse()
         out = []
@@ -228,10 +239,10 @@ def solve_mount(pairs: list[MountPair], height_m: float | None = None, height_so
             out.append((rv - Rotation.from_matrix(p.base.rotation).as_rotvec()) / sigma_r)
         return np.concatenate(out)
 
-    x0 = np.array([0.0, 0.0, 0.0, lever0[0], lever0[1], scale0 - 1.0, 0.0, 0.0] + ([0.0] if map_free else []))
+    x0 = np.array([0.0, 0.0, 0.0, lever0[0], lever0[1], scale0 - 1.0, 0.0, 0.0] + ([0.0] if mapped else []))
     fit = least_squares(residuals, x0, loss="huber", f_scale=3.0, x_scale="jac")
     mount, distance_scale, turn_scale, drift, map_scale = unpack(fit.x)
-    raw = residuals(fit.x).reshape(len(pairs), 2, 3)
+    raw = pair_residuals(fit.x).reshape(len(pairs), 2, 3)
     per_pair = np.sqrt((raw**2).sum(axis=(1, 2)) / 6.0)
     used = per_pair < 3.0
     # Gauss-Newton covariance of the parameters, scaled up by the residuals where they are
@@ -242,7 +253,7 @@ def solve_mount(pairs: list[MountPair], height_m: float | None = None, height_so
     except np.linalg.LinAlgError:
         raise MountError("the drive does not determine the mount (its turns all look alike): drive "
                          "figure-eights, turning both ways") from None
-    chi2 = float(np.sum(raw[used] ** 2)) / max(6 * int(used.sum()) - len(fit.x), 1)
+    chi2 = float(np.sum(raw[used] ** 2)) / max(6 * int(used.sum()) + int(mapped) - len(fit.x), 1)
     cov_x *= max(chi2, 1.0)
     covariance = np.zeros((6, 6))
     covariance[:2, :2] = cov_x[3:5, 3:5]
@@ -265,18 +276,13 @@ def solve_mount(pairs: list[MountPair], height_m: float | None = None, height_so
         warnings.append(f"{int((~used).sum())} of {len(pairs)} stretches disagree beyond 3 sigma (slip?) and "
                         "were down-weighted")
     observed = {"x": True, "y": True, "z": height_m is not None, "roll": True, "pitch": True, "yaw": True}
-    # the lever scales with the camera's scale: where the map's scale was not solved, its
-    # share of the map's scale error, by the share of the stretches the target did not measure
-    share = 0.0 if map_free else float(np.mean(~on_target))
-    lever = mount.translation.copy()
-    lever[2] = 0.0
-    covariance[:3, :3] += (noise.map_scale * share) ** 2 * np.outer(lever, lever)
     covariance[2, 2] = height_sigma_m**2
     if height_m is None:
         covariance[2, 2] = 1.0  # unknown: a metre's standard deviation stands for "not measured"
         height_source = "unobserved (0)"
     return MountResult(mount, covariance, observed, height_source, distance_scale, turn_scale,
-                       math.degrees(drift), map_scale if map_free else None, len(pairs),
+                       math.degrees(drift), map_scale if mapped else None,
+                       float(math.sqrt(cov_x[8, 8])) if mapped else None, int(on_target.sum()), len(pairs),
                        int(used.sum()), float(np.sqrt(np.mean(trans[used] ** 2))),
                        float(np.degrees(np.sqrt(np.mean(rots[used] ** 2)))), float(turns.max()), warnings)
 

@@ -109,7 +109,9 @@ def run(args) -> int:
         f"# the wheels measured {result.distance_scale:.4f} times the distance and {result.turn_scale:.4f} times "
         f"the turn the camera saw, and drifted {result.heading_drift_deg_s:+.3f} deg/s in heading\n"
         + ("" if result.map_scale is None else
-           f"# the map (away from the target) measured {result.map_scale:.4f} times the target's scale\n")
+           f"# the map away from the target: {result.map_scale:.4f} times the target's scale (sigma "
+           f"{100 * result.map_scale_sigma:.1f} %, from the {result.target_pairs} stretches the target measured; "
+           "in the lever's standard deviations)\n")
     )
     print(table, end="")
     if not result.observed["z"]:
