@@ -143,6 +143,8 @@ def test_the_command_prints_and_writes_the_frames_table_with_the_height_from_the
                  "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "[frames.base_from_camera]" in printed and "above the cube's floor" in printed
+    assert main(["calibrate-mount", "--poses", str(poses), "--odometry", str(odometry), "--out", str(out)]) == 2
+    assert "already exists; use --force" in capsys.readouterr().err  # and the file is the first run's
     placement = FramesConfig(**tomllib.loads(out.read_text())["frames"]).base_from_camera
     found = placement.transform()
     assert np.linalg.norm(found.translation - X.translation) < 0.005

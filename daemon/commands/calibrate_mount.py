@@ -10,7 +10,8 @@ odometry-bridged ones are not.
 The lever's z (the camera above the base's origin) is not observable from a drive on the
 floor. It comes from ``--height``, or from the target when it is a cube standing on the
 floor: the camera's height above its bottom face, less ``--base-height`` (the base
-origin's own height above the floor; 0 for a base_footprint on the floor).
+origin's own height above the floor; 0 for a base_footprint on the floor). An existing
+``--out`` is replaced only with ``--force``, as the other calibrations do.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ def register(subparsers) -> None:
     parser.add_argument("--pair-seconds", type=float, default=1.0, metavar="S",
                         help="the stretches of the drive compared (default 1 s)")
     parser.add_argument("--out", metavar="FILE.toml", help="also write the [frames.base_from_camera] table there")
+    parser.add_argument("--force", action="store_true", help="replace an existing --out file")
     parser.set_defaults(func=run)
 
 
@@ -69,6 +71,8 @@ def run(args) -> int:
         raise InputFileError(f"--pair-seconds {args.pair_seconds}: between 0.1 and 10 s")
     if args.out and not Path(args.out).parent.is_dir():
         raise InputFileError(f"{args.out}: the directory {Path(args.out).parent} does not exist")
+    if args.out and Path(args.out).exists() and not args.force:
+        raise InputFileError(f"{args.out}: already exists; use --force to replace it (or another --out)")
     config = load_config(args.config) if args.config else Config()
     frames = config.frames.robot_frames()
     camera = _read_poses(Path(args.poses))
