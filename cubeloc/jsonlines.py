@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
+from cubeloc.atomic import atomic_write_text
 from cubeloc.errors import InputFileError
 
 T = TypeVar("T")
@@ -32,3 +33,8 @@ def read_json_lines(path: str | os.PathLike[str], parse: Callable[[dict], T | No
         if value is not None:
             out.append(value)
     return out
+
+
+def write_json_lines(path: str | os.PathLike[str], documents: list[dict]) -> None:
+    """The documents, one JSON per line, written atomically (what ``read_json_lines`` reads)."""
+    atomic_write_text(Path(path), "".join(json.dumps(doc) + "\n" for doc in documents))

@@ -16,7 +16,6 @@ sample reached the daemon), one per line: what ``cubeloc track --odometry`` repl
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -91,9 +90,9 @@ def wheel_odometry(times: np.ndarray, planar: list[tuple[float, float, float]], 
 
 
 def write_odometry(path: Path, rows: list[dict]) -> None:
-    from cubeloc.atomic import atomic_write_text
+    from cubeloc.jsonlines import write_json_lines
 
-    atomic_write_text(Path(path), "".join(json.dumps(row) + "\n" for row in rows))
+    write_json_lines(path, rows)
 
 
 def figure_eight(times_s: np.ndarray, centre=(0.0, 0.0), size_m: float = 1.0, period_s: float = 20.0

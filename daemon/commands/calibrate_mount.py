@@ -59,6 +59,7 @@ def run(args) -> int:
 
     from cubeloc.atomic import atomic_write_text
     from cubeloc.errors import InputFileError
+    from daemon.commands import check_out
     from daemon.config import Config, load_config
     from daemon.odometry_in import read_odometry_file
     from positioning.mount import camera_height, make_pairs, solve_mount
@@ -69,10 +70,8 @@ def run(args) -> int:
             raise InputFileError(f"{name} {value}: metres expected, within 5 m")
     if not 0.1 <= args.pair_seconds <= 10.0:
         raise InputFileError(f"--pair-seconds {args.pair_seconds}: between 0.1 and 10 s")
-    if args.out and not Path(args.out).parent.is_dir():
-        raise InputFileError(f"{args.out}: the directory {Path(args.out).parent} does not exist")
-    if args.out and Path(args.out).exists() and not args.force:
-        raise InputFileError(f"{args.out}: already exists; use --force to replace it (or another --out)")
+    if args.out:
+        check_out(Path(args.out), args.force)
     config = load_config(args.config) if args.config else Config()
     frames = config.frames.robot_frames()
     camera = _read_poses(Path(args.poses))

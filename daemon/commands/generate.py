@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 from cubeloc.errors import InputFileError
+from daemon.commands import check_out
 
 
 def register(subparsers) -> None:
@@ -99,14 +100,6 @@ def run_cube(args) -> int:
     return 0
 
 
-def _check_out(out: Path, force: bool) -> None:
-    """InputFileError unless ``out`` may be written: new (or ``force``), in a directory."""
-    if out.exists() and not force:
-        raise InputFileError(f"{out}: already exists; use --force to replace it")
-    if not out.parent.is_dir():
-        raise InputFileError(f"--out {out}: directory {out.parent} does not exist")
-
-
 def register_board(kinds) -> None:
     from calib.boards import BOARD_HELP, DEFAULT_BOARD
 
@@ -133,7 +126,7 @@ def run_board(args) -> int:
         raise InputFileError(f"--out {out}: give a .pdf (true scale) or a .png file name")
     if not 72 <= args.dpi <= 2400:
         raise InputFileError(f"--dpi {args.dpi:g}: choose a printer resolution between 72 and 2400")
-    _check_out(out, args.force)
+    check_out(out, args.force)
     board = parse_board(args.board)
     sheet = board_sheet(board, args.dpi)
     atomic_write_bytes(out, sheet_bytes(sheet, file_format))
@@ -174,7 +167,7 @@ def run_aprilgrid(args) -> int:
         sys.stdout.write(text)
         return 0
     out = Path(args.out)
-    _check_out(out, args.force)
+    check_out(out, args.force)
     atomic_write_bytes(out, text.encode())
     print(f"wrote {out}: a {grid.cols}x{grid.rows} AprilGrid of {grid.tag_size_m * 1000:g} mm tags, "
           f"gaps {grid.gap_m * 1000:g} mm; use it as cubeloc --target and as Kalibr's --target")

@@ -87,12 +87,10 @@ def run(args) -> int:
           f"({summary.reason}); dropped: {stats.incomplete} incomplete, {stats.bad_timestamp} bad "
           f"timestamps, {stats.frame_id_gaps} frame-id gaps; reconnects: {stats.reconnects}")
     if odometry is not None:
-        import json
-
-        from cubeloc.atomic import atomic_write_text
+        from cubeloc.jsonlines import write_json_lines
 
         path = out / "odometry.jsonl"
-        atomic_write_text(path, "".join(json.dumps(row) + "\n" for row in odometry.rows))
+        write_json_lines(path, odometry.rows)
         dropped = ", ".join(f"{n} {reason}" for reason, n in odometry.stats.dropped.items()) or "none"
         print(f"recorded {len(odometry.rows)} odometry samples to {path} (dropped: {dropped})")
         if not odometry.rows:
