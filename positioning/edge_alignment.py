@@ -34,6 +34,17 @@ from positioning.target import Target
 
 PROFILE_STEP_PX = 0.5
 MIN_PROFILE_SIGMA_PX = 0.01  # floor on the profile noise used for the covariance
+# Every edge of an image may be found off its place towards one side, by an amount the
+# profiles' noise does not show and the fit cannot tell from the pose: a blurred step
+# through a non-linear response (a camera's gamma of 0.8-1.25 moves it by 0.06-0.14 of the
+# blur's sigma, depending on the levels), ink spread. Its standard deviation is taken as
+# EDGE_BIAS_PER_BLUR of the steps' measured spread (``EdgeFit.blur_px``, which includes the
+# pixels' own ~0.5 px): 0.04 px on a sharp image, 0.07-0.1 px at 0.8-1.5 px of defocus.
+# Each tag's edges move apart from the others' by TAG_BIAS_SHARE of that besides (a face's
+# own light and ink). Checked on the range map's views through a gamma of 0.8 or 1.25
+# (``python -m bench target_nees``, docs/benchmarks.md).
+EDGE_BIAS_PER_BLUR = 0.08
+TAG_BIAS_SHARE = 0.5
 # The corners' RMS about the aligned pose on a sharp image (measured 0.02-0.05 px on the
 # synthetic camera at noise sigma 2, slow frames of agile); more is blur or a bad image
 SHARP_CORNER_RMS_PX = 0.05
@@ -119,6 +130,8 @@ class EdgeFit:
     profiles: int
     # (6, 6) what the corners fitted beside the edges tell of (omega, delta_t): J^T J / sigma^2
     corner_information: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((6, 6)))
+    blur_px: float = 0.0  # the steps' spread (a Gaussian blur's sigma, pixels along the normal), median
+    tags: np.ndarray | None = None  # (K,) each profile's tag (index into the fit's tags)
 
     @property
     def rvec(self) -> np.ndarray:
@@ -128,23 +141,32 @@ class EdgeFit:
     def tvec(self) -> np.ndarray:
         return self.translation
 
-    def covariance(self, min_sigma_px: float = MIN_PROFILE_SIGMA_PX) -> np.ndarray:
-        """6x6 covariance of T_world_camera (ROS order: position, world rotation), from
-        the profiles and the corners fitted with them.
+    def covariances(self, min_sigma_px: float = MIN_PROFILE_SIGMA_PX) -> tuple[np.ndarray, np.ndarray]:
+        """6x6 covariances of T_world_camera (ROS order: position, world rotation): the
+        noise's (the profiles and the corners fitted with them), and the systematic share,
+        what the edges' shift towards their white side (``EDGE_BIAS_PER_BLUR``) moves the
+        pose by: all of them alike, and each tag's apart (its own levels and ink) by
+        ``TAG_BIAS_SHARE`` of that.
 
         With X_c' = exp(omega) X_c + delta_t, the camera position moves by -R^T delta_t
         and the world-frame rotation by -R^T omega (to first order)."""
         dof = max(self.residuals_px.size - 6, 1)
         sigma2 = max(float(np.sum(self.residuals_px**2)) / dof, min_sigma_px**2)
         if self.corner_information.any():
-            cov_local = np.linalg.pinv(self.jacobian.T @ self.jacobian / sigma2 + self.corner_information)
+            noise = np.linalg.pinv(self.jacobian.T @ self.jacobian / sigma2 + self.corner_information)
         else:
-            cov_local = sigma2 * np.linalg.pinv(self.jacobian.T @ self.jacobian)
+            noise = sigma2 * np.linalg.pinv(self.jacobian.T @ self.jacobian)
+        # J^T of a unit shift of every profile, and of each tag's (by TAG_BIAS_SHARE)
+        shifts = [self.jacobian.sum(axis=0)[None]]
+        if self.tags is not None:
+            each = (self.tags[:, None] == np.unique(self.tags)[None]).astype(np.float64)  # (K, tags)
+            shifts.append(TAG_BIAS_SHARE * (self.jacobian.T @ each).T)
+        moved = noise @ np.vstack(shifts).T / sigma2  # (6, groups): the pose's move for each shift
+        systematic = (EDGE_BIAS_PER_BLUR * self.blur_px) ** 2 * moved @ moved.T
         g = np.zeros((6, 6))
         g[:3, 3:] = -self.rotation.T
         g[3:, :3] = -self.rotation.T
-        cov = g @ cov_local @ g.T
-        return (cov + cov.T) / 2.0
+        return tuple((c + c.T) / 2.0 for c in (g @ noise @ g.T, g @ systematic @ g.T))
 
 
 @dataclass(frozen=True)
@@ -277,11 +299,12 @@ _compiled_offsets = compiled(_offsets, lambda: None)  # warmed up with the layou
 
 
 def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translation: np.ndarray,
-             calibration: CameraCalibration):
+             calibration: CameraCalibration, spread: bool = False):
     """Offsets (pixels along the projected edge's normal) of the image's steps from the
     model's projected edges, with their Jacobian for the left perturbation of the pose;
     profiles that are not clean single steps are left out. Returns (offsets (K,),
-    jacobian (K, 6), model indices (K,)) or None. The loops around the step profiles are
+    jacobian (K, 6), model indices (K,), the steps' spreads (K,): their blur's variance in
+    pixels^2 along the normal, with ``spread``, else zeros) or None. The loops around the step profiles are
     compiled too (``_layout``, ``_offsets``): 1188 profiles in 0.60-0.65 ms, where the
     thirty-odd numpy array operations they replace took 1.46-1.53 ms, timed side by side."""
     points = model.points @ rotation.T + translation
@@ -296,10 +319,13 @@ def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translat
         return None
     # Profiles from the black cell to the white one, 2 * steps + 1 samples each.
     runs = model.run_index[index]
-    position, good, clean = step_positions(image, starts, deltas, 2 * steps + 1, runs, int(runs.max()) + 1,
-                                           MIN_CONTRAST)
-    return _compiled_offsets()(position, good, clean, runs, scale, shift, normals, point_j, read_only(points),
-                               index)
+    found = step_positions(image, starts, deltas, 2 * steps + 1, runs, int(runs.max()) + 1, MIN_CONTRAST,
+                           spread=spread)
+    position, good, clean = found[:3]
+    spreads = found[3] if spread else np.zeros(len(position))
+    offset, jacobian, kept = _compiled_offsets()(position, good, clean, runs, scale, shift, normals, point_j,
+                                                 read_only(points), index)
+    return offset, jacobian, kept, spreads[good] * scale[good] ** 2  # (the kernel leaves only the rows kept good)
 
 
 def _rotation_of(omega: np.ndarray) -> np.ndarray:
@@ -353,11 +379,11 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
     fit = None
     iterations = max(iterations, 1)
     for iteration in range(iterations):
-        measured = _measure(image, model if iteration == iterations - 1 else coarse, rotation, translation,
-                            calibration)
+        last = iteration == iterations - 1
+        measured = _measure(image, model if last else coarse, rotation, translation, calibration, spread=last)
         if measured is None or len(measured[0]) < MIN_PROFILES:
             return None
-        offset, jacobian, _ = measured
+        offset, jacobian, rows, spread = measured
         # Robust: a step further than 4 sigma (median-based) from the rest is not this edge.
         centre = np.median(offset)
         sigma = 1.4826 * np.median(np.abs(offset - centre)) + 1e-3
@@ -375,11 +401,12 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
             return None
         small = _rotation_of(step[:3])
         rotation, translation = small @ rotation, small @ translation + step[3:]
-        fit = (a, b - a @ step)
-    a, residuals = fit
+        fit = (a, b - a @ step, spread[inlier], model.tag_index[rows[inlier]])
+    a, residuals, spread, tags = fit
     corner_information = corners.normal_equations(rotation, translation, calibration)[0] if with_corners \
         else np.zeros((6, 6))
-    return EdgeFit(rotation, translation, residuals, a, len(residuals), corner_information)
+    blur = float(np.sqrt(max(np.median(spread), 0.0)))
+    return EdgeFit(rotation, translation, residuals, a, len(residuals), corner_information, blur, tags)
 
 
 def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
@@ -414,10 +441,13 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     # The profiles' residuals do not show what motion blur does to the edges (they stay
     # ~0.04 px while the pose is 1-3 mm off: agile); the tag corners do, by disagreeing
     # with the aligned pose. As far as they disagree beyond a sharp image's RMS, the
-    # covariance is scaled (agile: 84 -> 98 % of the tracker's poses inside 3 sigma).
+    # noise's covariance is scaled (agile: 84 -> 98 % of the tracker's poses inside 3
+    # sigma); the systematic share grows with the blur by itself (EDGE_BIAS_PER_BLUR).
     corner_rms = float(np.sqrt(np.mean(residuals**2)))
-    covariance = fit.covariance() * max(1.0, corner_rms / sharp_corner_rms_px) ** 2
+    noise, systematic = fit.covariances()
+    noise = noise * max(1.0, corner_rms / sharp_corner_rms_px) ** 2
     return dataclasses.replace(
-        pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=covariance,
+        pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=noise + systematic,
+        systematic_covariance=systematic,
         residuals_px=residuals, reproj_rms_px=float(np.sqrt(np.mean(fit.residuals_px**2))),
     )

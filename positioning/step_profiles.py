@@ -14,7 +14,9 @@ The step's position comes from its area, not from where it crosses 50 %: pixels 
 light over their area, which keeps the area of a step (blurred or not) but pulls the 50 %
 crossing towards pixel centres by up to 0.08 px. The plateau levels are per group (an
 edge, or a run of cell edges: means over its clean profiles), so their noise does not
-enter each profile.
+enter each profile. On request each clean profile's spread (its second moment about the
+step: the blur's variance) comes too; the edge alignment sizes the covariance's systematic
+share by it.
 
 Compiled with numba (``positioning/jit.py``, whose ``warm_up`` compiles it before the first
 frame). The arrays always reach the kernel as read-only views (``jit.read_only``): numba
@@ -31,8 +33,9 @@ import numpy as np
 from positioning.jit import compiled, read_only
 
 
-def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, rising_only):
-    """(position (K,) in samples from each start, clean (K,), clean profiles a group)."""
+def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, rising_only, with_spread):
+    """(position (K,) in samples from each start, clean (K,), clean profiles a group, spread (K,):
+    the blur's variance in samples^2 of each clean profile when ``with_spread``, else 0)."""
     height, width = image.shape
     count = starts.shape[0]
     quarter = max(2, samples // 4)
@@ -40,6 +43,7 @@ def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, ri
     dark = np.empty(count)
     bright = np.empty(count)
     total = np.empty(count)
+    spread = np.zeros(count)
     clean = np.zeros(count, np.bool_)
     for k in range(count):
         for s in range(samples):
@@ -68,6 +72,16 @@ def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, ri
         dark[k], bright[k] = lo, hi
         total[k] = area - 0.5 * (profile[0] + profile[samples - 1])  # trapezoids
         clean[k] = hi - lo >= min_contrast and crossings == 1
+        if with_spread and clean[k]:
+            # the step's spread: for a step blurred by a Gaussian of variance v (samples^2),
+            # the integral of (profile - ideal step) times the distance from the step is -v / 2
+            # (zero-mean noise stays zero-mean in it); the step and its levels are the profile's own
+            at = (samples - 1) - (total[k] - lo * (samples - 1)) / (hi - lo)
+            moment = 0.0
+            for s in range(samples):
+                ideal = 1.0 if s > at else 0.0
+                moment += ((profile[s] - lo) / (hi - lo) - ideal) * (s - at)
+            spread[k] = -2.0 * moment
     per_group = np.zeros(group_count, np.int64)
     dark_sum = np.zeros(group_count)
     bright_sum = np.zeros(group_count)
@@ -84,7 +98,7 @@ def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, ri
         contrast = max(bright_sum[g] / n - dark_level, 1e-6)
         # the profile's area above the dark level, in samples of full contrast
         position[k] = (samples - 1) - (total[k] - dark_level * (samples - 1)) / contrast
-    return position, clean, per_group
+    return position, clean, per_group, spread
 
 
 def _warm_up() -> None:  # Mono8, the cameras' and the renderer's
@@ -95,16 +109,20 @@ _compiled = compiled(_steps, _warm_up)  # see positioning/jit.py
 
 
 def step_positions(image: np.ndarray, starts: np.ndarray, deltas: np.ndarray, samples: int,
-                   groups: np.ndarray, group_count: int, min_contrast: float, rising_only: bool = False
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   groups: np.ndarray, group_count: int, min_contrast: float, rising_only: bool = False,
+                   spread: bool = False) -> tuple[np.ndarray, ...]:
     """Steps along K profiles of ``samples`` samples: sample s of profile k is at
     ``starts[k] + s * deltas[k]`` (pixels) in ``image`` (2-D, any real type). ``groups``
     (K,) in ``range(group_count)`` pool the plateau levels.
 
     Returns (position (K,): the step, in samples from the start; clean (K,); clean profiles
-    in each group (group_count,)). A position is meaningful for clean profiles only."""
+    in each group (group_count,)), and with ``spread`` the step's blur (K,): its variance
+    in samples^2, as a Gaussian blur's (noisy a profile: pool many). A position or a spread
+    is meaningful for clean profiles only."""
     if samples < 4:
         raise ValueError(f"a profile needs at least 4 samples, not {samples}")
     image = read_only(image)  # one compiled signature per pixel type (see the module's docstring)
-    return _compiled()(image, read_only(starts, np.float64), read_only(deltas, np.float64), int(samples),
-                       read_only(groups, np.int64), int(group_count), float(min_contrast), bool(rising_only))
+    found = _compiled()(image, read_only(starts, np.float64), read_only(deltas, np.float64), int(samples),
+                        read_only(groups, np.int64), int(group_count), float(min_contrast), bool(rising_only),
+                        bool(spread))
+    return found if spread else found[:3]

@@ -247,7 +247,7 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
             measured = _measure(view.image, moved, view_rotation[v], view_translation[v], calibration)
             if measured is None or len(measured[0]) < MIN_PROFILES:
                 continue
-            offset, camera_j, kept = measured
+            offset, camera_j, kept, _ = measured
             middle = np.median(offset)
             spread = 1.4826 * np.median(np.abs(offset - middle)) + 1e-3
             inlier = np.abs(offset - middle) <= 4.0 * spread + 0.05

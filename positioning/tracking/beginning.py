@@ -67,10 +67,10 @@ class MapBeginning:
         state = PoseState.TARGET
         if self.initialised:  # beginning again: the map gave no pose in this frame
             state = PoseState.RELOCALISED if self.lost else state
-            self.lost, self._target_seen, self._last_covariance = False, True, trusted.covariance
+            self.lost, self._target_seen, self._last_covariance = False, True, trusted.published_covariance
             self._drift.reset()
         estimate = PoseEstimate(trusted.T_world_camera, state, trusted.planes, trusted.tag_ids,
-                                trusted.reproj_rms_px, trusted.covariance, PoseSource.TARGET)
+                                trusted.reproj_rms_px, trusted.published_covariance, PoseSource.TARGET)
         status = "relocalised" if state is PoseState.RELOCALISED else "ok"
         self._hold.rebase(trusted.T_world_camera, tracks.ids, xn)
         # beginning again, the pose is too unsure to anchor a keyframe: not taken for motion either

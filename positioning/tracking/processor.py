@@ -146,8 +146,10 @@ class TrackingProcessor:
             self._last_target_pose = None
             return None, observed.seen, observed.outlines
         self._last_target_pose = pose.T_world_camera
+        systematic = pose.systematic_covariance
+        own = pose.covariance if systematic is None or pose.covariance is None else pose.covariance - systematic
         return TargetObservation(pose.T_world_camera, pose.planes, pose.tag_ids, pose.reproj_rms_px,
-                                 observed.corners_px, pose.points_world, pose.covariance), observed.seen, \
+                                 observed.corners_px, pose.points_world, own, systematic), observed.seen, \
             observed.outlines
 
     def _target_outline(self, pose: Transform | None) -> np.ndarray | None:

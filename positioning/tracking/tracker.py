@@ -170,7 +170,7 @@ class Tracker(MapBeginning):
                                                  self.options.pnp_reproj_px, self.fx)
                 pose = fused if fused is not None and not self._jumped(fused, pose) else pose
             estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
-                                    trusted.covariance, PoseSource.TARGET)
+                                    trusted.published_covariance, PoseSource.TARGET)
         elif tracked is not None or held is not None:
             pose, covariance = (tracked, covariance) if tracked is not None else held
             state = PoseState.RELOCALISED if self.lost else PoseState.TRACKING

@@ -33,7 +33,18 @@ class TargetObservation:
     reproj_rms_px: float
     corners_px: np.ndarray  # (M, 2) detected corners
     corners_world: np.ndarray  # (M, 3) the same corners on the target (world frame)
-    covariance: np.ndarray | None = None  # (6, 6) as in PoseEstimate
+    # (6, 6), ROS order as in PoseEstimate: this frame's own (the noise of what it was fitted
+    # to), which weighs it against the map and the frames around it; and the share it has
+    # in common with them (``TargetPose.systematic_covariance``), which moves them all alike
+    covariance: np.ndarray | None = None
+    systematic: np.ndarray | None = None
+
+    @property
+    def published_covariance(self) -> np.ndarray | None:
+        """What the pose's error against the truth may be: the two shares together."""
+        if self.covariance is None or self.systematic is None:
+            return self.covariance
+        return self.covariance + self.systematic
 
 
 @dataclass(frozen=True)
