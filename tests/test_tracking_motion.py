@@ -63,6 +63,23 @@ def test_a_relocalisation_keeps_the_motion_model():
     assert np.allclose(predicted.translation, step.translation, atol=1e-9)
 
 
+def test_two_relocalisations_in_a_row_give_the_motion_model_the_turn_between_them():
+    """Lost in a spin, the velocity is none (held steps then make it a standstill); the
+    relocaliser finds the camera again, 9 deg a frame on. A relocalised pose that the
+    velocity cannot have brought there from the last pose measured (PnP's refusal bound,
+    ``max_motion_*``) sets it to the step between them; else the spin's next frame, 9 deg
+    from a standstill's prediction, was refused by PnP and found by relocalisation alone,
+    frame after frame (narrow lens at 90 deg/s: 30 frames)."""
+    tracker = Tracker(CAL, SYNC)
+    tracker.initialised = True
+    turn = [Transform.from_rvec_tvec(np.array([0.0, np.radians(9.0 * k), 0.0]), np.zeros(3)) for k in range(3)]
+    tracks = Tracks(np.arange(30), np.random.default_rng(1).uniform(0, 500, (30, 2)))
+    tracker.relocalised(0, turn[0], tracks, np.eye(6) * 1e-6)
+    assert tracker.predict(100_000_000) == turn[0]  # nothing measured before it: a standstill
+    tracker.relocalised(100_000_000, turn[1], tracks, np.eye(6) * 1e-6)
+    assert np.degrees(tracker.predict(200_000_000).rotation_angle_to(turn[2])) < 1e-6
+
+
 def _wheels_under(poses: list[Transform], mount: Transform, as_prior: bool):
     """An odometry prior whose samples are the base's true poses under camera ``poses``
     (one a frame, 100 ms apart, and one more frame ahead)."""

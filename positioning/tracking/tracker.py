@@ -90,6 +90,7 @@ class Tracker(MapBeginning):
         # frame): per second, as a live camera's frames come irregularly (the queue skips when behind)
         self._velocity: tuple[np.ndarray, np.ndarray] | None = None
         self._after_relocalisation = False  # the last pose came from relocalised()
+        self._measured: tuple[Transform, int] | None = None  # the last pose measured (not held), its stamp
         self._frame_tracks, self._frame_xn = Tracks.empty(), np.zeros((0, 2))
         self._frame_pose: Transform | None = None
         self._frame_target: TargetObservation | None = None
@@ -201,7 +202,10 @@ class Tracker(MapBeginning):
         # a visible correction is where the camera is, not how it moved, and the steps into
         # and out of a target pose too uncertain to anchor are its error: the velocity stays
         self._after_relocalisation = self._after_relocalisation or forced
-        self._update_motion(pose, stamp_ns, noisy=trusted is not None and not self._anchors(trusted))
+        noisy = trusted is not None and not self._anchors(trusted)
+        self._update_motion(pose, stamp_ns, noisy=noisy)
+        if held is None and not noisy:
+            self._measured = (pose, stamp_ns)
         self._frame_pose = pose
         if held is not None:
             # no keyframe from a pose whose position is only held: nothing is triangulated
@@ -253,7 +257,23 @@ class Tracker(MapBeginning):
         self.lost = False
         # the velocity stays: a relocalisation corrects where the camera is, not how it
         # moves (spin_on_axis, 4.5 deg a frame: without it the next frame's unguided KLT
-        # lost 3/4 of the tracks, three relocalisations in a row and then the track)
+        # lost 3/4 of the tracks, three relocalisations in a row and then the track);
+        # unless it cannot have brought the camera here from the last pose measured
+        # (PnP would refuse this pose against its prediction): lost, the velocity is none
+        # and held steps make it a standstill, and in a spin every frame after was then
+        # found by relocalisation alone (narrow lens at 90 deg/s: 30 frames)
+        if self._measured is not None:
+            before, before_stamp = self._measured
+            dt = (stamp_ns - before_stamp) / 1e9
+            if 0.0 < dt <= self.options.max_extrapolation_s:
+                expected = before
+                if self._velocity is not None:
+                    expected = before @ Transform.from_rvec_tvec(self._velocity[0] * dt, self._velocity[1] * dt)
+                if (np.linalg.norm(pose.translation - expected.translation) > self.options.max_motion_m
+                        or np.degrees(pose.rotation_angle_to(expected)) > self.options.max_motion_deg):
+                    step = before.inverse() @ pose
+                    self._velocity = (step.rvec() / dt, step.translation / dt)
+        self._measured = (pose, stamp_ns)
         self._last, self._last_stamp, self._last_covariance = pose, stamp_ns, covariance
         self._after_relocalisation = True
         self._frame_pose, self._frame_stamp = pose, stamp_ns
