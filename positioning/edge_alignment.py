@@ -401,8 +401,9 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
             return None
         small = _rotation_of(step[:3])
         rotation, translation = small @ rotation, small @ translation + step[3:]
-        fit = (a, b - a @ step, spread[inlier], model.tag_index[rows[inlier]])
-    a, residuals, spread, tags = fit
+        fit = (a, b - a @ step, spread[inlier], rows[inlier])
+    a, residuals, spread, rows = fit  # the last iteration's: of ``model``
+    tags = model.tag_index[rows]
     corner_information = corners.normal_equations(rotation, translation, calibration)[0] if with_corners \
         else np.zeros((6, 6))
     blur = float(np.sqrt(max(np.median(spread), 0.0)))

@@ -127,13 +127,19 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
     drop = ids[~mask]
     if not np.all(np.isfinite(pose.matrix())):
         return None, 0, drop, 0.0, None
-    if prediction is not None and (np.linalg.norm(pose.translation - prediction.translation) > o.max_motion_m
-                                   or np.degrees(pose.rotation_angle_to(prediction)) > o.max_motion_deg):
+    if prediction is not None and beyond_motion(pose, prediction, o):
         return None, int(mask.sum()), drop, 0.0, None
     rms = float(np.sqrt(np.mean(err[mask] ** 2)))
     fit = fit_pose(pose, obj[mask], img[mask], None, fx=fx, sigma_px=max(rms, o.track_sigma_px),
                    iterations=0)
     return pose, int(mask.sum()), drop, rms, None if fit is None else fit.covariance
+
+
+def beyond_motion(pose: Transform, prediction: Transform, options: TrackerOptions) -> bool:
+    """Is ``pose`` further from the motion model's ``prediction`` than a tracker pose may be
+    (``max_motion_m``, ``max_motion_deg``)?"""
+    return bool(np.linalg.norm(pose.translation - prediction.translation) > options.max_motion_m
+                or np.degrees(pose.rotation_angle_to(prediction)) > options.max_motion_deg)
 
 
 def pose_from_target_and_map(world_map: Map, corners_world: np.ndarray, corners_xn: np.ndarray, tracks: Tracks,

@@ -60,7 +60,7 @@ from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import pose_from_map, pose_from_target_and_map
+from positioning.tracking.pose_fit import beyond_motion, pose_from_map, pose_from_target_and_map
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
@@ -266,13 +266,9 @@ class Tracker(MapBeginning):
             before, before_stamp = self._measured
             dt = (stamp_ns - before_stamp) / 1e9
             if 0.0 < dt <= self.options.max_extrapolation_s:
-                expected = before
-                if self._velocity is not None:
-                    expected = before @ Transform.from_rvec_tvec(self._velocity[0] * dt, self._velocity[1] * dt)
-                if (np.linalg.norm(pose.translation - expected.translation) > self.options.max_motion_m
-                        or np.degrees(pose.rotation_angle_to(expected)) > self.options.max_motion_deg):
-                    step = before.inverse() @ pose
-                    self._velocity = (step.rvec() / dt, step.translation / dt)
+                expected = before if self._velocity is None else self._extrapolated(before, dt)
+                if beyond_motion(pose, expected, self.options):
+                    self._velocity = _velocity(before, pose, dt)
         self._measured = (pose, stamp_ns)
         self._last, self._last_stamp, self._last_covariance = pose, stamp_ns, covariance
         self._after_relocalisation = True
@@ -300,8 +296,12 @@ class Tracker(MapBeginning):
         dt = (stamp_ns - self._last_stamp) / 1e9
         if self._velocity is None or not 0.0 < dt <= self.options.max_extrapolation_s:
             return self._last
+        return self._extrapolated(self._last, dt)
+
+    def _extrapolated(self, pose: Transform, dt: float) -> Transform:
+        """``pose`` carried ``dt`` seconds on by the velocity."""
         rotation_per_s, translation_per_s = self._velocity
-        return self._last @ Transform.from_rvec_tvec(rotation_per_s * dt, translation_per_s * dt)
+        return pose @ Transform.from_rvec_tvec(rotation_per_s * dt, translation_per_s * dt)
 
     def _update_motion(self, pose: Transform, stamp_ns: int, noisy: bool = False) -> None:
         """Take ``pose`` as the last one and the step to it as the velocity, unless the
@@ -317,8 +317,7 @@ class Tracker(MapBeginning):
             # more frame (spin_on_axis: 11.6 -> 5.3 mm RMS, blank_wall 25 -> 15 mm)
             pass
         else:
-            step = self._last.inverse() @ pose
-            self._velocity = (step.rvec() / dt, step.translation / dt)
+            self._velocity = _velocity(self._last, pose, dt)
         self._after_relocalisation = noisy
         self._last, self._last_stamp = pose, stamp_ns
 
@@ -448,3 +447,10 @@ class Tracker(MapBeginning):
         self.bundle_runs = [*self.bundle_runs[-19:], replace(solution, points=np.zeros((0, 3)))]
         log.debug("tracker.bundle", applied=applied, seconds=round(solution.seconds, 3),
                   rms_before=round(solution.initial_rms_px, 3), rms_after=round(solution.final_rms_px, 3))
+
+
+def _velocity(a: Transform, b: Transform, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's motion per second from ``a`` to ``b``, ``dt`` seconds apart (rotation vector
+    and translation of T_a_b, in a's frame)."""
+    step = a.inverse() @ b
+    return step.rvec() / dt, step.translation / dt
