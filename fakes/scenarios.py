@@ -27,6 +27,9 @@ initialisation needs. The camera is 1 m above the floor with no roll, as on a ro
                        10 fps
 ``long_lap``           110 s: a lap of the room with the cube out of view >= 80 s, radius,
                        heading and tilt wandering, back to the cube at the end; 10 fps
+``laps``               three laps of the room as ``long_lap`` drives it (~50 m), each lap's
+                       radius, heading and tilt a little off the others', the cube out of
+                       view for ~185 s, back to it at the end; 200 s, 10 fps (loop closure)
 =====================  =================================================================
 
 The effects (``Effects``) are seeded by the scenario alone, so a sequence is the same
@@ -60,6 +63,7 @@ TIMING = {
     "passers_by": (30.0, 10.0, 24.0),
     "blank_wall": (26.0, 10.0, 22.0),
     "long_lap": (110.0, 10.0, 100.0),
+    "laps": (200.0, 10.0, 150.0),
 }
 
 
@@ -245,6 +249,28 @@ def _long_lap(times: np.ndarray, seconds: float) -> list[Transform]:
     return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
 
 
+def _laps(times: np.ndarray, seconds: float, laps: int = 3) -> list[Transform]:
+    """``laps`` turns round the cube on ``long_lap``'s route; each lap is offset in radius
+    (0.15 m), heading (8 deg) and tilt (3 deg) from the one before, so a place is seen
+    again from a slightly different pose, as a robot repeating a route sees it."""
+    a0, _ = _start_rows()
+    rows = _on_the_cube(6, 3.0)
+    lap_end = seconds - 8.0
+    steps = 16 * laps
+    for k in range(1, steps + 1):
+        fraction = k / steps
+        lap = min(int(fraction * laps), laps - 1)
+        within = fraction * laps - lap
+        azimuth = a0 + 6 * DEG + fraction * (laps * 360 - 40) * DEG
+        offset = (-1.0, 1.0, 0.0)[lap % 3]
+        radius = 2.7 + 0.5 * np.sin(2 * azimuth + 1.0) + 0.15 * offset
+        heading = azimuth + (75 + 25 * np.sin(5 * within * np.pi) + 8 * offset) * DEG
+        tilt = (12 + 6 * np.sin(3 * within * np.pi) + 3 * offset) * DEG
+        rows.append([3.0 + fraction * (lap_end - 3.0), *_polar(azimuth, radius), heading, tilt])
+    rows += _back_on_the_cube(rows, a0 + (laps * 360 - 15) * DEG, 2.2, seconds)
+    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
+
+
 MAKERS = {
     "turn_after_init": _turn_after_init,
     "spin_in_place": lambda t, s: spin(t, s, 0.2, 45.0),
@@ -255,6 +281,7 @@ MAKERS = {
     "passers_by": _passers_by,
     "blank_wall": _blank_wall,
     "long_lap": _long_lap,
+    "laps": _laps,
 }
 
 

@@ -8,7 +8,7 @@ import time
 
 # fakes.trajectories.TRAJECTORIES, spelled out so that --help needs no numpy import
 TRAJECTORY_NAMES = ("static", "orbit", "paper", "room_walk", "spin", "turn_after_init", "spin_in_place",
-                    "spin_in_place_fast", "spin_brisk", "spin_on_axis", "agile", "passers_by", "blank_wall", "long_lap")
+                    "spin_in_place_fast", "spin_brisk", "spin_on_axis", "agile", "passers_by", "blank_wall", "long_lap", "laps")
 
 
 def register(subparsers) -> None:
@@ -22,7 +22,7 @@ def register(subparsers) -> None:
     )
     which = parser.add_mutually_exclusive_group(required=True)
     which.add_argument("--trajectory", choices=TRAJECTORY_NAMES,
-                       help="camera path; the robot-motion scenarios (turn_after_init ... long_lap) bring "
+                       help="camera path; the robot-motion scenarios (turn_after_init ... laps) bring "
                             "their own passers-by, exposure steps and exposure-long motion blur")
     which.add_argument("--family", type=int, metavar="SEED",
                        help="a member of the randomized family (fakes/family.py): scene, lens, robot, motion "

@@ -192,6 +192,17 @@ class Drift:
         else:
             self.scale_var += window_var * min(max(renewed, 0.0), 1.0)
 
+    def rewind(self, grown_m: float) -> None:
+        """A loop closed onto a keyframe made when the drift had grown by ``grown_m``: the
+        pose is as sure as that keyframe's now, so path, turn and scale walk shrink alike
+        until ``grown_m`` is what has grown."""
+        if self.grown_m <= grown_m or self.grown_m <= 0.0:
+            return
+        fraction = max(grown_m, 0.0) / self.grown_m
+        self.path_m *= fraction
+        self.turned_rad *= fraction
+        self.scaled_m *= fraction
+
     def relocalised(self, covariance: np.ndarray | None) -> None:
         """A relocalisation against keyframes: the map is built on from its pose, so its
         uncertainty stays in every pose after it until the target returns."""

@@ -149,20 +149,26 @@ class Map:
             for track_id, point in zip(ids[result.good], result.points_world[result.good], strict=True):
                 self.add_point(int(track_id), point, kf.kf_id if kf.anchored else first_id)
 
-    def correct(self, correction: Transform, grown_m: float = 0.0) -> None:
-        """Move the drifted part of the map (what was built without the target) by
-        ``correction`` (T_true_drifted): the target's return says where it really is.
+    def correct(self, correction: Transform, grown_m: float = 0.0, since_m: float = 0.0,
+                after_ns: int | None = None) -> None:
+        """Move the drifted part of the map by ``correction`` (T_true_drifted): the
+        target's return, or a place seen before (a loop closure), says where it really is.
 
         With ``grown_m`` (the drift's growth since the target, now) each keyframe takes the
-        share of the correction that had drifted by the time it was made, ``drift_m /
-        grown_m`` (0 just after the target, 1 now), and each point its birth keyframe's
-        share: the drift is spread along the way as it grew (the long lap's keyframes,
-        its 6 mm return corrected so: 0.9 mm RMS off the truth, 3.7 mm uncorrected).
-        Without it, all of it everywhere. Anchored and loaded (``fixed``) keyframes stay."""
-        drifted = {k: kf for k, kf in self.keyframes.items() if not kf.anchored and k not in self.fixed}
-        shares = {k: 1.0 if grown_m <= 0 else float(np.clip(kf.drift_m / grown_m, 0.0, 1.0))
+        share of the correction that had drifted by the time it was made, ``(drift_m -
+        since_m) / (grown_m - since_m)`` (0 where the reference was made, 1 now), and each
+        point its birth keyframe's share: the drift is spread along the way as it grew (the
+        long lap's keyframes, its 6 mm return corrected so: 0.9 mm RMS off the truth, 3.7 mm
+        uncorrected). ``since_m`` is the drift's growth where the reference is (0 for the
+        target; a loop keyframe's ``drift_m``), and ``after_ns`` keeps every keyframe made
+        before it where it is (the reference and what came before it). Without ``grown_m``,
+        all of it everywhere. Anchored and loaded (``fixed``) keyframes stay."""
+        drifted = {k: kf for k, kf in self.keyframes.items() if not kf.anchored and k not in self.fixed
+                   and (after_ns is None or kf.stamp_ns > after_ns)}
+        span = grown_m - since_m
+        shares = {k: 1.0 if span <= 0 else float(np.clip((kf.drift_m - since_m) / span, 0.0, 1.0))
                   for k, kf in drifted.items()}
-        oldest = min(shares.values(), default=1.0)  # a point whose birth keyframe is gone
+        oldest = min(shares.values(), default=1.0)
         rotvec = correction.rvec()
         moves: dict[float, Transform] = {}
 
@@ -173,11 +179,30 @@ class Map:
 
         for k, kf in drifted.items():
             kf.T_world_camera = share_of(shares[k]) @ kf.T_world_camera
+            if after_ns is not None:  # corrected onto the reference: drifted since it by what was left
+                kf.drift_m = since_m + (1.0 - shares[k]) * max(kf.drift_m - since_m, 0.0)
+        # a point whose birth keyframe is gone (culled) takes the share of the first keyframe kept
+        # after it (ids grow with time); before the reference, none
+        kept = np.array(sorted(drifted), dtype=np.int64)
         for track_id, birth in self.point_birth.items():
             if birth in self.fixed or (birth in self.keyframes and birth not in drifted):
                 continue
-            self.points[track_id] = share_of(shares.get(birth, oldest)).apply(self.points[track_id][None])[0]
+            share = shares.get(birth)
+            if share is None:
+                later = int(np.searchsorted(kept, birth))
+                if after_ns is None:
+                    share = oldest
+                elif later == len(kept) or (later == 0 and birth < self._first_after(after_ns)):
+                    share = 0.0
+                else:
+                    share = shares[int(kept[later])]
+            if share > 0.0:
+                self.points[track_id] = share_of(share).apply(self.points[track_id][None])[0]
         self.epoch += 1
+
+    def _first_after(self, stamp_ns: int) -> int:
+        """The id of the first keyframe kept made after ``stamp_ns`` (the next id when none)."""
+        return next((k for k, kf in self.keyframes.items() if kf.stamp_ns > stamp_ns), self.next_kf_id)
 
     def retire(self, visible: np.ndarray, found: np.ndarray, camera_position: np.ndarray,
                options: TrackerOptions) -> int:
@@ -215,12 +240,13 @@ class Map:
             del self.keyframes[kf_id]
         self._drop_unheld(live_track_ids)
 
-    def thin(self, max_keyframes: int, keep_newest: int, live_track_ids: set[int]) -> None:
+    def thin(self, max_keyframes: int, keep_newest: int, live_track_ids: set[int], keep_fixed: bool = False) -> None:
         """Keep ``max_keyframes`` keyframes: the ``keep_newest`` newest (the ones tracking
         and bundle adjustment are working with) and, of the others, those spread widest
         over the area (farthest-point sampling of their positions: where the map is dense
-        it loses keyframes, where it is thin it keeps them); then the points nobody holds."""
-        keyframes = list(self.keyframes.values())
+        it loses keyframes, where it is thin it keeps them); then the points nobody holds.
+        ``keep_fixed``: a loaded map's keyframes stay and do not count (as ``cull``)."""
+        keyframes = [kf for kf in self.keyframes.values() if not (keep_fixed and kf.kf_id in self.fixed)]
         if len(keyframes) <= max_keyframes:
             return
         newest = keyframes[len(keyframes) - min(keep_newest, max_keyframes):] if keep_newest else []

@@ -135,7 +135,20 @@ class TrackerOptions:
     # wrong (0.7 m off within 6 s; 95 mm with this). 3 sigmas left a map short of points
     # after a 25-point relocalisation (tests/test_tracking_images.py: 67 mm off, held).
     triangulation_min_baseline_sigmas: float = 1.0
-    max_keyframes: int = 40  # older keyframes and the points only they saw are culled
+    # loop closure (Tracker.loop_keyframes / close_loop): a keyframe tracked on the map is
+    # matched against keyframes made this long ago, this near, looking this close to the
+    # same way, sharing at most this share of their points with the live tracks (the nearest few)
+    loop_closure: bool = True
+    loop_min_age_s: float = 10.0
+    loop_radius_m: float = 1.0
+    loop_max_angle_deg: float = 30.0
+    loop_max_shared: float = 0.2
+    loop_keyframes: int = 3
+    loop_max_drift_share: float = 0.5  # ...whose drift (Drift.grown_m) is at most this share of this frame's
+    loop_matches: int = 4  # ...and the map moved when this many matches within loop_window_s agree
+    loop_window_s: float = 5.0
+    max_keyframes: int = 40  # older keyframes and the points only they saw are culled...
+    loop_kept_keyframes: int = 60  # ...but these, spread widest over the area (Map.thin), with loop_closure
     # target
     anchor_max_reproj_px: float = 0.25  # a target pose fitting worse (a grazing face) anchors no keyframe
     anchor_max_position_std_m: float = 0.005  # ...nor one whose covariance says it is this uncertain

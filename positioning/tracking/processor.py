@@ -185,6 +185,8 @@ class TrackingProcessor:
             want = result.estimate is not None and not bridged
         else:
             want = out.want_features or self.tracker.holding  # held: fresh corners keep the rays coming
+            if out.keyframe and self.options.tracker.loop_closure and _source(result) is PoseSource.MAP:
+                result = self._close_loop(image, stamp_ns, result)
         if result.estimate is not None and not self.tracker.holding and not bridged:
             self._lost_frames = 0
         if want:
@@ -248,6 +250,35 @@ class TrackingProcessor:
         estimate = PoseEstimate(found.T_world_camera, PoseState.RELOCALISED, 0, (), 0.0, covariance,
                                 PoseSource.RELOCALISED)
         return FrameResult(estimate, "relocalised", f"{len(found.point_ids)} map points found again")
+
+
+    def _close_loop(self, image: np.ndarray, stamp_ns: int, tracked: FrameResult) -> FrameResult:
+        """A keyframe tracked on the map, near keyframes made long ago: matched against
+        their points (not those tracked now); a match that moves the map
+        (``Tracker.close_loop``) gives this frame's pose, and the points found again are
+        followed as tracks (bundle adjustment then ties the old and the new keyframes)."""
+        candidates = self.tracker.loop_keyframes()
+        if not candidates:
+            return tracked
+        found = self.relocaliser.relocalise(image, self.tracker.map, among=candidates,
+                                            excluding={int(t) for t in self.front_end.ids})
+        if found is None:
+            return tracked
+        reference = max(candidates, key=lambda kf: np.isin(found.point_ids, kf.descriptor_ids).sum())
+        outcome = self.tracker.close_loop(stamp_ns, found.T_world_camera, found.covariance, reference)
+        if outcome in ("refused", "pending"):
+            return tracked
+        self.front_end.adopt(found.point_ids, found.pixels)
+        self.tracker.add_tracks(Tracks(found.point_ids, found.pixels))
+        if outcome == "agrees":
+            return tracked
+        before, after = tracked.estimate, self.tracker.last_pose
+        jumped = self.tracker.jumped(before.T_world_camera, after)
+        estimate = dataclasses.replace(before, T_world_camera=after,
+                                       state=PoseState.RELOCALISED if jumped else before.state,
+                                       source=PoseSource.RELOCALISED)
+        return FrameResult(estimate, "relocalised" if jumped else tracked.status,
+                           f"loop closed: {len(found.point_ids)} points of keyframe {reference.kf_id} found again")
 
 
 def _source(result: FrameResult) -> PoseSource | None:

@@ -175,17 +175,20 @@ class Relocaliser:
                      for t, (x, y) in zip(tags, pixels, strict=True)]
         return self._orb.compute(image, keypoints)
 
-    def relocalise(self, image: np.ndarray, world_map: Map, thorough: bool = False) -> Relocalisation | None:
+    def relocalise(self, image: np.ndarray, world_map: Map, thorough: bool = False,
+                   among: list[Keyframe] | None = None, excluding: set[int] | None = None) -> Relocalisation | None:
         """The pose of ``image`` in the map, or None when too few matches agree. ``thorough``
         (at boot on a saved map, where nothing else can give a pose): RANSAC with
         ``reloc_boot_iterations`` P3P samples instead of 500 SQPnP ones (bench boot: a view
         15-20 deg from every keyframe has 10-25 % of its matches right; 500 samples found
-        none, 10,000 found 16-28 inliers; P3P's samples are 4x cheaper: ~100 ms)."""
+        none, 10,000 found 16-28 inliers; P3P's samples are 4x cheaper: ~100 ms). ``among``
+        matches against those keyframes' points only, less the ``excluding`` ones (a loop
+        closure: a place seen long ago, not the points being tracked)."""
         o = self.options
         known: dict[int, np.ndarray] = {}
-        for kf in world_map.keyframes.values():  # newest last, so the newest descriptor wins
+        for kf in world_map.keyframes.values() if among is None else among:  # newest last: its descriptor wins
             for point_id, descriptor in zip(kf.descriptor_ids, kf.descriptors, strict=True):
-                if int(point_id) in world_map.points:
+                if int(point_id) in world_map.points and (excluding is None or int(point_id) not in excluding):
                     known[int(point_id)] = descriptor
         if len(known) < o.reloc_min_inliers:
             return None

@@ -57,13 +57,16 @@ from positioning.tracking import bundle
 from positioning.tracking.beginning import MapBeginning
 from positioning.tracking.hold import Drift, RayHold, position_sigma
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
-from positioning.tracking.map import Map
+from positioning.tracking.map import Keyframe, Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import beyond_motion, pose_from_map, pose_from_target_and_map
 from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
+
+CHI2_3DOF_99 = 11.34  # chi-square, 3 degrees of freedom: 99 % and 99.9 % quantiles
+CHI2_3DOF_999 = 16.27
 
 
 class Tracker(MapBeginning):
@@ -106,6 +109,9 @@ class Tracker(MapBeginning):
         self._kf_points_at_insert = 0
         self._frames_since_keyframe = 0
         self._target_seen = False  # the last frame had a trusted target pose
+        self._target_stamp = 0  # when the target was last trusted (the drift's start)
+        self.loops_closed, self.loops_refused = 0, 0  # loop closures applied and refused (close_loop)
+        self._loop_evidence: list[tuple] = []  # close_loop's matches not yet applied
         self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
         # the rays that hold the orientation when few map points are in view; the drift since the target
         self._hold = RayHold(self.options, self.fx)
@@ -160,16 +166,16 @@ class Tracker(MapBeginning):
             before = tracked if tracked is not None else (None if self.lost or self.holding else prediction)
             if self.lost:
                 state = PoseState.RELOCALISED
-            elif before is not None and not self._target_seen and (tracked is not None or self._jumped(before, pose)):
+            elif before is not None and not self._target_seen and (tracked is not None or self.jumped(before, pose)):
                 # the map drifted while the target was away: spread the correction along it
                 self.map.correct(pose @ before.inverse(), self._drift.grown_m)
                 log.debug("tracker.corrected", jump_m=float(np.linalg.norm(pose.translation - before.translation)))
-                state = PoseState.RELOCALISED if self._jumped(before, pose) else state
+                state = PoseState.RELOCALISED if self.jumped(before, pose) else state
             if tracked is not None and state is PoseState.TARGET and self.options.fuse_target_with_map:
                 fused = pose_from_target_and_map(self.map, trusted.corners_world,
                                                  undistort(trusted.corners_px, self.calibration), tracks, xn, pose,
                                                  self.options.pnp_reproj_px, self.fx)
-                pose = fused if fused is not None and not self._jumped(fused, pose) else pose
+                pose = fused if fused is not None and not self.jumped(fused, pose) else pose
             estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
                                     trusted.published_covariance, PoseSource.TARGET)
         elif tracked is not None or held is not None:
@@ -193,6 +199,7 @@ class Tracker(MapBeginning):
         self._target_seen = trusted is not None
         if trusted is not None:
             self._drift.reset()
+            self._target_stamp = stamp_ns
         self.lost = False
         if held is None:
             self._hold.end()
@@ -279,6 +286,99 @@ class Tracker(MapBeginning):
         self._frames_since_keyframe, self._kf_points_at_insert = 0, len(tracks.ids)
         return covariance
 
+    def loop_keyframes(self) -> list[Keyframe]:
+        """Keyframes this frame may close a loop with, nearest first: made
+        ``loop_min_age_s`` or more before it and not in bundle adjustment's window, neither
+        anchored (the target holds those) nor loaded, within ``loop_radius_m`` and
+        ``loop_max_angle_deg`` of its pose, and with at most ``loop_max_shared`` of their
+        points tracked now (a place left and seen again, not the place being tracked).
+        None unless this frame's pose came from the map."""
+        o = self.options
+        pose = self._frame_pose
+        if pose is None or self._frame_keyframe is None or self.holding or self._frame_target is not None:
+            return []
+        keyframes = list(self.map.keyframes.values())[: -self.options.bundle.window_keyframes]
+        live = self._frame_tracks.ids
+        axis = pose.rotation[:, 2]
+        near = []
+        for kf in keyframes:
+            if kf.anchored or kf.kf_id in self.map.fixed or not len(kf.descriptor_ids):
+                continue
+            if (self._frame_stamp - kf.stamp_ns) / 1e9 < o.loop_min_age_s:
+                continue
+            distance = float(np.linalg.norm(kf.T_world_camera.translation - pose.translation))
+            angle = np.degrees(np.arccos(np.clip(kf.T_world_camera.rotation[:, 2] @ axis, -1.0, 1.0)))
+            if distance > o.loop_radius_m or angle > o.loop_max_angle_deg:
+                continue
+            if np.isin(kf.descriptor_ids, live).mean() > o.loop_max_shared:
+                continue
+            drift = kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0
+            if drift > o.loop_max_drift_share * self._drift.grown_m:
+                continue  # about as sure as this frame: little to correct, and its own error to take on
+            near.append((distance, kf))
+        near.sort(key=lambda pair: pair[0])  # the nearest first
+        return [kf for _, kf in near[: o.loop_keyframes]]
+
+    def close_loop(self, stamp_ns: int, pose: Transform, covariance: np.ndarray, reference: Keyframe) -> str:
+        """This frame, tracked on the map, was found again in ``reference`` (one of
+        ``loop_keyframes``) at ``pose`` with the match's ``covariance``: one piece of
+        evidence of how far the map has drifted since the reference (the offset between
+        the two poses, its position and its rotation about the camera). A match that puts
+        the camera further than this frame's own covariance, drift included, allows
+        (chi-square 99.9 %, 3 dof) is the match's error: ``"refused"``. The map is moved
+        once ``loop_matches`` pieces within ``loop_window_s`` agree with their
+        precision-weighted mean (99.9 %) and the mean is beyond its own noise (99 %): the
+        map made since the reference is moved onto it, the drift spread along the way
+        (``Map.correct``, as for the target's return): ``"closed"``; else ``"pending"``.
+        One match is not enough: from another viewpoint the old points' own errors put it
+        3-25 mm off (the laps scenario, where the drift it corrects is 8 mm)."""
+        current = self._frame_pose
+        if current is None or self._last_stamp != stamp_ns or self._last_covariance is None:
+            return "refused"
+        offset = pose.translation - current.translation
+        match = np.asarray(covariance)[:3, :3]
+        allowed = np.asarray(self._last_covariance)[:3, :3] + match
+        if offset @ np.linalg.solve(allowed, offset) > CHI2_3DOF_999:
+            self.loops_refused += 1
+            log.debug("tracker.loop_refused", offset_m=float(np.linalg.norm(offset)))
+            return "refused"
+        o = self.options
+        turn = (pose.rotation @ current.rotation.T)
+        evidence = [e for e in self._loop_evidence if (stamp_ns - e[0]) / 1e9 <= o.loop_window_s]
+        evidence.append((stamp_ns, offset, np.linalg.inv(match), Transform(turn, np.zeros(3)).rvec(), reference))
+        # the evidence is of one drift: offsets measured since agree once the first closes
+        self._loop_evidence = evidence
+        if len(evidence) < o.loop_matches:
+            return "pending"
+        information = sum(e[2] for e in evidence)
+        mean = np.median([e[1] for e in evidence], axis=0)  # robust: one match in several is far off
+        if any((e[1] - mean) @ e[2] @ (e[1] - mean) > CHI2_3DOF_999 for e in evidence):
+            self._loop_evidence = evidence[1:]  # the oldest goes: the rest may agree without it
+            return "pending"
+        self._loop_evidence = []
+        # the matches' own scatter, where it is wider than they claim (the old points' errors
+        # seen from another viewpoint are not in a match's covariance)
+        offsets = np.array([e[1] for e in evidence])
+        scatter = np.cov(offsets.T) / len(evidence)
+        if mean @ np.linalg.solve(np.linalg.inv(information) + scatter, mean) <= CHI2_3DOF_99:
+            return "agrees"
+        rotation = Transform.from_rvec_tvec(np.median([e[3] for e in evidence], axis=0), np.zeros(3)).rotation
+        centre = current.translation
+        correction = Transform(rotation, centre + mean - rotation @ centre)
+        oldest = min((e[4] for e in evidence), key=lambda kf: kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0)
+        within = oldest.stamp_ns > self._target_stamp  # the reference made since the target
+        since = oldest.drift_m if within else 0.0
+        self.map.correct(correction, self._drift.grown_m, since, max(oldest.stamp_ns, self._target_stamp))
+        self._drift.rewind(since)
+        self._drift.relocalised(np.linalg.inv(information))
+        self.loops_closed += 1
+        log.debug("tracker.loop_closed", offset_m=float(np.linalg.norm(mean)), reference=oldest.kf_id)
+        pose = correction @ current
+        self._last = self._frame_pose = pose
+        self._measured = (pose, stamp_ns)
+        self._hold.rebase(pose, self._frame_tracks.ids, self._frame_xn)
+        return "closed"
+
     @property
     def last_pose(self) -> Transform | None:
         return self._last
@@ -363,7 +463,8 @@ class Tracker(MapBeginning):
             bound = self.options.init.max_position_std_m if beginning else self.options.anchor_max_position_std_m
         return target.covariance is None or position_sigma(target.covariance) <= bound
 
-    def _jumped(self, a: Transform, b: Transform) -> bool:
+    def jumped(self, a: Transform, b: Transform) -> bool:
+        """``a`` and ``b`` further apart than ``relocalised_jump_*``: a visible correction."""
         return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
                 or np.degrees(a.rotation_angle_to(b)) > self.options.relocalised_jump_deg)
 
@@ -398,7 +499,11 @@ class Tracker(MapBeginning):
                              if inliers < o.triangulation_starving_points else o.triangulation_min_parallax_deg,
                              o.triangulation_max_reproj_px, o.triangulation_min_baseline_sigmas)
         self._kf_points_at_insert = sum(1 for t in kf.track_ids if int(t) in self.map.points)
-        self.map.cull(o.max_keyframes, {int(t) for t in tracks.ids})
+        live = {int(t) for t in tracks.ids}
+        if o.loop_closure:  # places left behind stay, a few, for a loop to close on
+            self.map.thin(o.max_keyframes + o.loop_kept_keyframes, o.max_keyframes, live, keep_fixed=True)
+        else:
+            self.map.cull(o.max_keyframes, live)
         self._schedule_bundle()
         return True
 
