@@ -10,7 +10,7 @@ from bench.common import update_section
 
 # Module names under bench/, in the order they appear in docs/benchmarks.md.
 BENCHMARKS: tuple[str, ...] = ("grab", "render", "pose", "range", "target_nees", "e2e", "calibrate", "tracker", "scenarios", "odometry", "mount",
-                               "foxglove", "boot", "seeds", "intrinsics", "turns", "family", "planar", "boards")
+                               "foxglove", "boot", "seeds", "intrinsics", "turns", "family", "laps", "planar", "boards")
 
 
 def main(argv: list[str]) -> int:

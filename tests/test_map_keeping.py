@@ -61,3 +61,34 @@ def test_a_loaded_point_not_found_where_it_should_be_seen_retires():
             assert set(world_map.points) == {0, 1, 2}
     assert gone == 1 and world_map.points_retired == 1
     assert set(world_map.points) == {0, 1}
+
+
+def test_a_loop_closure_moves_only_what_was_made_after_its_reference():
+    """Map.correct onto a loop keyframe (``since_m``: its drift, ``after_ns``: when it was
+    made): the reference and everything before it stay, the keyframes after it take the
+    share of the drift grown since it, and then have only what is left of that drift; a
+    point whose keyframe is gone takes the share of the first keyframe kept after it."""
+    world_map = Map()
+    for k in range(6):
+        kf = world_map.add_keyframe(10 * k, Transform.from_rvec_tvec(np.zeros(3), np.array([k, 0.0, 0.0])),
+                                    np.array([k]), np.zeros((1, 2)))
+        kf.drift_m = 0.01 * k
+        world_map.add_point(k, np.array([k, 1.0, 0.0]), k)
+    world_map.add_point(20, np.array([3.5, 1.0, 0.0]), 4)  # born in keyframe 4, culled below
+    world_map.add_point(21, np.array([0.5, 1.0, 0.0]), -1)  # born before the reference, its keyframe gone
+    del world_map.keyframes[4]
+    correction = Transform.from_rvec_tvec(np.array([0.0, 0.0, 0.002]), np.array([0.02, 0.0, 0.0]))
+    before = {k: kf.T_world_camera for k, kf in world_map.keyframes.items()}
+    points = {k: p.copy() for k, p in world_map.points.items()}
+    # the reference: keyframe 1 (drift 0.01, made at 10); now the drift has grown to 0.05
+    world_map.correct(correction, grown_m=0.05, since_m=0.01, after_ns=10)
+    for k, share in ((0, 0.0), (1, 0.0), (2, 0.25), (3, 0.5), (5, 1.0)):
+        part = Transform.from_rvec_tvec(share * correction.rvec(), share * correction.translation)
+        np.testing.assert_allclose(world_map.keyframes[k].T_world_camera.matrix(), (part @ before[k]).matrix(),
+                                   atol=1e-12)
+        np.testing.assert_allclose(world_map.points[k], part.apply(points[k][None])[0], atol=1e-12)
+    np.testing.assert_allclose(world_map.keyframes[3].drift_m, 0.01 + 0.5 * 0.02)
+    np.testing.assert_allclose(world_map.keyframes[5].drift_m, 0.01)
+    np.testing.assert_allclose(world_map.keyframes[1].drift_m, 0.01)  # the reference: as it was
+    np.testing.assert_allclose(world_map.points[20], correction.apply(points[20][None])[0], atol=1e-12)
+    np.testing.assert_allclose(world_map.points[21], points[21], atol=0)

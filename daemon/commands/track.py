@@ -177,6 +177,9 @@ def run(args) -> int:
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
     if sources:  # what measured the poses (README, "Zenoh": the pose's source)
         summary += "; poses from " + ", ".join(f"{name} {count}" for name, count in sources.most_common())
+    tracker = processor.tracker
+    if tracker.loops_closed or tracker.loops_refused:
+        summary += f"; loops closed {tracker.loops_closed}, refused {tracker.loops_refused}"
     replayed = len(entries) - args.first
     print(f"{replayed} frames in {elapsed:.1f} s ({replayed / max(elapsed, 1e-9):.1f} fps): {summary}")
     written = [str(out)] + ([args.poses] if args.poses else []) + ([args.mcap] if args.mcap else [])

@@ -111,6 +111,7 @@ class Tracker(MapBeginning):
         self._target_seen = False  # the last frame had a trusted target pose
         self._target_stamp = 0  # when the target was last trusted (the drift's start)
         self.loops_closed, self.loops_refused = 0, 0  # loop closures applied and refused (close_loop)
+        self.last_closure: tuple[int, Transform, Transform] | None = None  # its stamp, the pose before and after
         self._loop_evidence: list[tuple] = []  # close_loop's matches not yet applied
         self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
         # the rays that hold the orientation when few map points are in view; the drift since the target
@@ -315,8 +316,8 @@ class Tracker(MapBeginning):
             drift = kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0
             if drift > o.loop_max_drift_share * self._drift.grown_m:
                 continue  # about as sure as this frame: little to correct, and its own error to take on
-            near.append((distance, kf))
-        near.sort(key=lambda pair: pair[0])  # the nearest first
+            near.append((kf.kf_id, kf))
+        near.sort(key=lambda pair: pair[0])  # the oldest first
         return [kf for _, kf in near[: o.loop_keyframes]]
 
     def close_loop(self, stamp_ns: int, pose: Transform, covariance: np.ndarray, reference: Keyframe) -> str:
@@ -374,6 +375,7 @@ class Tracker(MapBeginning):
         self.loops_closed += 1
         log.debug("tracker.loop_closed", offset_m=float(np.linalg.norm(mean)), reference=oldest.kf_id)
         pose = correction @ current
+        self.last_closure = (stamp_ns, current, pose)
         self._last = self._frame_pose = pose
         self._measured = (pose, stamp_ns)
         self._hold.rebase(pose, self._frame_tracks.ids, self._frame_xn)
