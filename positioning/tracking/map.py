@@ -36,6 +36,7 @@ class Keyframe:
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # (K, 32)
     position_sigma_m: float = 0.0  # its pose's own (target, PnP or match), not the drift
     drift_m: float = 0.0  # the drift's growth since the target when it was made (Drift.grown_m)
+    loop_moved: bool = False  # moved by a loop closure's spread (Map.correct with after_ns): no reference
 
     def __post_init__(self) -> None:
         self._index = {int(t): i for i, t in enumerate(self.track_ids)}
@@ -179,6 +180,7 @@ class Map:
 
         for k, kf in drifted.items():
             kf.T_world_camera = share_of(shares[k]) @ kf.T_world_camera
+            kf.loop_moved = kf.loop_moved or (after_ns is not None and shares[k] > 0.0)
             if after_ns is not None:  # corrected onto the reference: drifted since it by what was left
                 kf.drift_m = since_m + (1.0 - shares[k]) * max(kf.drift_m - since_m, 0.0)
         # a point whose birth keyframe is gone (culled) takes the share of the first keyframe kept

@@ -303,7 +303,7 @@ class Tracker(MapBeginning):
         axis = pose.rotation[:, 2]
         near = []
         for kf in keyframes:
-            if kf.anchored or kf.kf_id in self.map.fixed or not len(kf.descriptor_ids):
+            if kf.anchored or kf.kf_id in self.map.fixed or kf.loop_moved or not len(kf.descriptor_ids):
                 continue
             if (self._frame_stamp - kf.stamp_ns) / 1e9 < o.loop_min_age_s:
                 continue
