@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -71,10 +72,13 @@ def _replay(sequence: Path, loop_closure: bool) -> dict:
             for a, b in zip(LAP_SECONDS, LAP_SECONDS[1:], strict=False)]
     return {"coverage": float(np.mean(np.isfinite(errors))), "rms": float(np.sqrt(np.nanmean(errors**2))),
             "max": float(np.nanmax(errors)), "laps": laps, "closed": closed, "refused": refused,
-            "wrong": sum(after > before for before, after in moved), "moved": moved}
+            "wrong": int(sum(after > before for before, after in moved)), "moved": moved}
 
 
 def run() -> str:
+    from daemon.logs import configure_logging
+
+    configure_logging("warning", "console", stream=sys.stderr)  # the tracker's debug lines are not the bench's
     seeds = [int(s) for s in os.environ.get("CUBELOC_BENCH_LAPS_SEEDS", "0,1,2,3").split(",") if s]
     root = Path(os.environ.get("CUBELOC_BENCH_LAPS", REPO / ".cache" / "laps")).resolve()
     root.mkdir(parents=True, exist_ok=True)

@@ -89,6 +89,9 @@ class PositioningConfig(Section):
     # tracker: initialise on the target, then track (positioning.tracking); target: the
     # single-frame target pose only (no pose while the cube is out of view)
     mode: Literal["tracker", "target"] = "tracker"
+    # the tracker: when the view comes back to a place mapped long ago, move the map being
+    # tracked onto it (docs/tracker.md, "Loop closure")
+    loop_closure: bool = True
 
 
 class ZenohConfig(Section):

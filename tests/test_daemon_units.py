@@ -292,3 +292,19 @@ def test_the_zenoh_start_up_line_shows_this_modes_listeners():
     assert peer["listen/endpoints"] == ["tcp/[::]:0"]
     explicit = effective_settings(build_zenoh_config(ZenohConfig(mode="peer", listen=("tcp/127.0.0.1:7999",))))
     assert explicit["listen/endpoints"] == ["tcp/127.0.0.1:7999"]
+
+
+def test_the_config_turns_the_trackers_loop_closure_off(tmp_path):
+    """``[positioning] loop_closure`` reaches the tracker the daemon builds (default on)."""
+    from daemon.config import load_config
+    from daemon.preflight import make_processor, prepare
+
+    _write_files(tmp_path)
+    for text, expected in (("", True), ("loop_closure = false\n", False)):
+        path = tmp_path / "loop.toml"
+        path.write_text(_config(tmp_path).replace("[zenoh]", text + "[zenoh]"))
+        processor = make_processor(prepare(load_config(path, environ={})))
+        try:
+            assert processor.tracker.options.loop_closure is expected
+        finally:
+            processor.close()

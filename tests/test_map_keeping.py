@@ -66,8 +66,9 @@ def test_a_loaded_point_not_found_where_it_should_be_seen_retires():
 def test_a_loop_closure_moves_only_what_was_made_after_its_reference():
     """Map.correct onto a loop keyframe (``since_m``: its drift, ``after_ns``: when it was
     made): the reference and everything before it stay, the keyframes after it take the
-    share of the drift grown since it, and then have only what is left of that drift; a
-    point whose keyframe is gone takes the share of the first keyframe kept after it."""
+    share of the drift grown since it, and then have only what is left of that drift, and
+    are marked as moved; a point whose keyframe is gone takes the share of the first
+    keyframe kept after it."""
     world_map = Map()
     for k in range(6):
         kf = world_map.add_keyframe(10 * k, Transform.from_rvec_tvec(np.zeros(3), np.array([k, 0.0, 0.0])),
@@ -90,5 +91,7 @@ def test_a_loop_closure_moves_only_what_was_made_after_its_reference():
     np.testing.assert_allclose(world_map.keyframes[3].drift_m, 0.01 + 0.5 * 0.02)
     np.testing.assert_allclose(world_map.keyframes[5].drift_m, 0.01)
     np.testing.assert_allclose(world_map.keyframes[1].drift_m, 0.01)  # the reference: as it was
+    # what a loop closure moved is no reference for another; the reference and before it are
+    assert [kf.loop_moved for kf in world_map.keyframes.values()] == [False, False, True, True, True]
     np.testing.assert_allclose(world_map.points[20], correction.apply(points[20][None])[0], atol=1e-12)
     np.testing.assert_allclose(world_map.points[21], points[21], atol=0)

@@ -117,6 +117,27 @@ def test_the_drift_grows_with_the_path_at_the_scale_bundle_adjustment_measured()
     assert drift.scale_var == 0.0 and drift.scaled_m == 0.0
 
 
+def test_a_loop_closed_onto_a_surer_keyframe_rewinds_the_drift_to_its():
+    """Drift.rewind: path, turn and scale walk shrink alike until the growth is the
+    reference keyframe's, so the position's standard deviation comes down with it; a
+    reference less sure than now changes nothing."""
+    options = TrackerOptions()
+    drift = Drift(options)
+    measured, pose = np.zeros((6, 6)), Transform.identity()
+    drift.covariance(None, pose, measured)
+    for k in range(1, 11):  # 10 m, turning 0.1 rad a metre
+        nxt = Transform.from_rvec_tvec(np.array([0.0, 0.1 * k, 0.0]), np.array([float(k), 0.0, 0.0]))
+        drift.covariance(pose, nxt, measured)
+        pose = nxt
+    grown, sigma = drift.grown_m, np.sqrt(drift.covariance(pose, pose, measured)[0, 0])
+    drift.rewind(2 * grown)
+    assert drift.grown_m == pytest.approx(grown)
+    drift.rewind(grown / 4)
+    assert drift.grown_m == pytest.approx(grown / 4)
+    after = np.sqrt(drift.covariance(pose, pose, measured)[0, 0])
+    assert after - drift.floor_m == pytest.approx((sigma - drift.floor_m) / 4)
+
+
 @pytest.mark.parametrize("seed", [5, 6, 7])
 def test_our_solver_reaches_the_same_solution_as_scipys(seed):
     """The Schur-complement Levenberg-Marquardt (the default) against SciPy's

@@ -103,7 +103,7 @@ def run(args) -> int:
     if keyframes < 2:
         raise InputFileError(f"--map-keyframes {keyframes}: at least 2")
     options = replace(defaults, tracker=replace(
-        defaults.tracker, max_keyframes=keyframes,
+        defaults.tracker, max_keyframes=keyframes, loop_closure=config.positioning.loop_closure,
         bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
     processor = TrackingProcessor(target, calibration, options)
     if args.map:

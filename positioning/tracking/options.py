@@ -137,7 +137,7 @@ class TrackerOptions:
     triangulation_min_baseline_sigmas: float = 1.0
     # loop closure (Tracker.loop_keyframes / close_loop): a keyframe tracked on the map is
     # matched against keyframes made this long ago, this near, looking this close to the
-    # same way, sharing at most this share of their points with the live tracks (the nearest few)
+    # same way, sharing at most this share of their points with the live tracks (the oldest few)
     loop_closure: bool = True
     loop_min_age_s: float = 10.0
     loop_radius_m: float = 1.0

@@ -251,12 +251,12 @@ class TrackingProcessor:
                                 PoseSource.RELOCALISED)
         return FrameResult(estimate, "relocalised", f"{len(found.point_ids)} map points found again")
 
-
     def _close_loop(self, image: np.ndarray, stamp_ns: int, tracked: FrameResult) -> FrameResult:
         """A keyframe tracked on the map, near keyframes made long ago: matched against
-        their points (not those tracked now); a match that moves the map
-        (``Tracker.close_loop``) gives this frame's pose, and the points found again are
-        followed as tracks (bundle adjustment then ties the old and the new keyframes)."""
+        their points (not those tracked now), the match one piece of evidence for
+        ``Tracker.close_loop``; when the loop closes (or the evidence agrees with the map)
+        the points found again are followed as tracks (bundle adjustment then ties the old
+        and the new keyframes), and a closed loop gives this frame's pose."""
         candidates = self.tracker.loop_keyframes()
         if not candidates:
             return tracked

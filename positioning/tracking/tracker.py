@@ -288,12 +288,15 @@ class Tracker(MapBeginning):
         return covariance
 
     def loop_keyframes(self) -> list[Keyframe]:
-        """Keyframes this frame may close a loop with, nearest first: made
+        """Keyframes this frame may close a loop with, the oldest first (the map as first
+        made, before any loop closure moved it): made
         ``loop_min_age_s`` or more before it and not in bundle adjustment's window, neither
         anchored (the target holds those) nor loaded, within ``loop_radius_m`` and
         ``loop_max_angle_deg`` of its pose, and with at most ``loop_max_shared`` of their
-        points tracked now (a place left and seen again, not the place being tracked).
-        None unless this frame's pose came from the map."""
+        points tracked now (a place left and seen again, not the place being tracked), not
+        moved by an earlier loop closure (``Keyframe.loop_moved``: its pose is then that
+        correction's guess), and whose drift is at most ``loop_max_drift_share`` of this
+        frame's. None unless this frame's pose came from the map and made a keyframe."""
         o = self.options
         pose = self._frame_pose
         if pose is None or self._frame_keyframe is None or self.holding or self._frame_target is not None:
@@ -327,10 +330,11 @@ class Tracker(MapBeginning):
         the two poses, its position and its rotation about the camera). A match that puts
         the camera further than this frame's own covariance, drift included, allows
         (chi-square 99.9 %, 3 dof) is the match's error: ``"refused"``. The map is moved
-        once ``loop_matches`` pieces within ``loop_window_s`` agree with their
-        precision-weighted mean (99.9 %) and the mean is beyond its own noise (99 %): the
-        map made since the reference is moved onto it, the drift spread along the way
-        (``Map.correct``, as for the target's return): ``"closed"``; else ``"pending"``.
+        once ``loop_matches`` pieces within ``loop_window_s`` agree with their median
+        (99.9 %) and the median is beyond its noise (99 %): the map made since the surest
+        of their references (the least drift) is moved onto it, the drift spread along the
+        way (``Map.correct``, as for the target's return): ``"closed"``; the median within
+        its noise: ``"agrees"`` (nothing to move); else ``"pending"``.
         One match is not enough: from another viewpoint the old points' own errors put it
         3-25 mm off (the laps scenario, where the drift it corrects is 8 mm)."""
         current = self._frame_pose
@@ -344,7 +348,7 @@ class Tracker(MapBeginning):
             log.debug("tracker.loop_refused", offset_m=float(np.linalg.norm(offset)))
             return "refused"
         o = self.options
-        turn = (pose.rotation @ current.rotation.T)
+        turn = pose.rotation @ current.rotation.T
         evidence = [e for e in self._loop_evidence if (stamp_ns - e[0]) / 1e9 <= o.loop_window_s]
         evidence.append((stamp_ns, offset, np.linalg.inv(match), Transform(turn, np.zeros(3)).rvec(), reference))
         # the evidence is of one drift: offsets measured since agree once the first closes
@@ -366,14 +370,14 @@ class Tracker(MapBeginning):
         rotation = Transform.from_rvec_tvec(np.median([e[3] for e in evidence], axis=0), np.zeros(3)).rotation
         centre = current.translation
         correction = Transform(rotation, centre + mean - rotation @ centre)
-        oldest = min((e[4] for e in evidence), key=lambda kf: kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0)
-        within = oldest.stamp_ns > self._target_stamp  # the reference made since the target
-        since = oldest.drift_m if within else 0.0
-        self.map.correct(correction, self._drift.grown_m, since, max(oldest.stamp_ns, self._target_stamp))
+        surest = min((e[4] for e in evidence), key=lambda kf: kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0)
+        within = surest.stamp_ns > self._target_stamp  # the reference made since the target
+        since = surest.drift_m if within else 0.0
+        self.map.correct(correction, self._drift.grown_m, since, max(surest.stamp_ns, self._target_stamp))
         self._drift.rewind(since)
         self._drift.relocalised(np.linalg.inv(information))
         self.loops_closed += 1
-        log.debug("tracker.loop_closed", offset_m=float(np.linalg.norm(mean)), reference=oldest.kf_id)
+        log.debug("tracker.loop_closed", offset_m=float(np.linalg.norm(mean)), reference=surest.kf_id)
         pose = correction @ current
         self.last_closure = (stamp_ns, current, pose)
         self._last = self._frame_pose = pose
