@@ -4,8 +4,8 @@ The ``laps`` scenario (fakes/scenarios.py: three laps of the room round the cube
 the cube out of view for ~190 s, each lap 0.15 m and 8 deg off the one before) is rendered
 at 1280x1024 with several sensor-noise seeds (``CUBELOC_BENCH_LAPS_SEEDS``, default
 0,1,2,3; kept in ``.cache/laps`` or ``CUBELOC_BENCH_LAPS``) and replayed in this process,
-bundle adjustment in the frame loop, once with loop closure (today's default) and once
-without (``TrackerOptions.loop_closure`` off).
+bundle adjustment in the frame loop, once without loop closure (the default) and once
+with it (``TrackerOptions.loop_closure``).
 
 Per run: coverage, RMS position error over the run and per lap (no alignment), the last
 lap's and the run's RMS over the first lap's (the trusted-pose issue's goals: at most 1 and

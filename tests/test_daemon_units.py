@@ -295,12 +295,12 @@ def test_the_zenoh_start_up_line_shows_this_modes_listeners():
 
 
 def test_the_config_turns_the_trackers_loop_closure_off(tmp_path):
-    """``[positioning] loop_closure`` reaches the tracker the daemon builds (default on)."""
+    """``[positioning] loop_closure`` reaches the tracker the daemon builds (default off)."""
     from daemon.config import load_config
     from daemon.preflight import make_processor, prepare
 
     _write_files(tmp_path)
-    for text, expected in (("", True), ("loop_closure = false\n", False)):
+    for text, expected in (("", False), ("loop_closure = true\n", True)):
         path = tmp_path / "loop.toml"
         path.write_text(_config(tmp_path).replace("[zenoh]", text + "[zenoh]"))
         processor = make_processor(prepare(load_config(path, environ={})))

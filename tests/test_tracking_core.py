@@ -361,7 +361,8 @@ def test_an_anchoring_pose_completes_the_beginning_on_an_unsure_reference():
 def test_background_bundle_adjustment_and_bounded_memory():
     poses = trolley_path(80)
     # the newest 10 keyframes and 2 older ones kept for loop closure
-    options = TrackerOptions(bundle=replace(QUICK_BA, background=True), max_keyframes=10, loop_kept_keyframes=2)
+    options = TrackerOptions(bundle=replace(QUICK_BA, background=True), max_keyframes=10, loop_kept_keyframes=2,
+                             loop_closure=True)
     tracker = Tracker(CAL, options)
     try:
         outputs = run(tracker, SyntheticTracks(room_points(10), seed=11), poses, lambda i: i < 20, paced=True)

@@ -10,6 +10,8 @@ The previous tracker (commit 9580d93) on these sequences, for the record: turn_a
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from helpers import half_resolution
@@ -183,7 +185,8 @@ def test_laps_of_the_room_close_the_loop_on_the_first(tmp_path_factory):
     out = tmp_path_factory.mktemp("laps") / "laps"
     write_synthetic_sequence(out, "laps", seconds=150.0, seed=0, calibration=half_resolution())
     truth = read_tum(out / "groundtruth.tum")
-    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC)
+    options = replace(SYNC, tracker=replace(SYNC.tracker, loop_closure=True))
+    processor = TrackingProcessor(make_cube(), half_resolution(), options)
     errors, nearer, closed = [], [], 0
     try:
         for i, entry in enumerate(read_sequence_index(out)):

@@ -138,7 +138,9 @@ class TrackerOptions:
     # loop closure (Tracker.loop_keyframes / close_loop): a keyframe tracked on the map is
     # matched against keyframes made this long ago, this near, looking this close to the
     # same way, sharing at most this share of their points with the live tracks (the oldest few)
-    loop_closure: bool = True
+    # off by default: on the randomized family it moved the runs both ways and the poses after a
+    # closure claimed far too little (docs/tracker.md, "Loop closure")
+    loop_closure: bool = False
     loop_min_age_s: float = 10.0
     loop_radius_m: float = 1.0
     loop_max_angle_deg: float = 30.0
