@@ -132,14 +132,20 @@ def run_as_printed(command: str, tmp_path) -> None:
 
     words = shlex.split(command)
     assert words[0] == "cubeloc", command
+    # Ctrl-C as a technician's terminal delivers it: a suite started in the background
+    # (``make test &``) ignores SIGINT, and its children would inherit that and never stop
     process = subprocess.Popen([sys.executable, "-m", "daemon.cli", *words[1:]], cwd=tmp_path, text=True,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         out, err = process.communicate(timeout=5)
         assert process.returncode == 0, (command, err)
     except subprocess.TimeoutExpired:
         process.send_signal(signal.SIGINT)
-        out, err = process.communicate(timeout=20)
+        try:
+            out, err = process.communicate(timeout=20)
+        finally:
+            process.kill()  # (a no-op once it has exited) never left running
         # it grabbed until told to stop: its one complaint is that no view was kept
         errors = [line for line in err.splitlines() if "error" in line.lower()]
         assert errors and all("stopped on request" in line for line in errors), (command, err)
