@@ -186,6 +186,7 @@ class Map:
         # a point whose birth keyframe is gone (culled) takes the share of the first keyframe kept
         # after it (ids grow with time); before the reference, none
         kept = np.array(sorted(drifted), dtype=np.int64)
+        first_after = None if after_ns is None else self._first_after(after_ns)
         for track_id, birth in self.point_birth.items():
             if birth in self.fixed or (birth in self.keyframes and birth not in drifted):
                 continue
@@ -194,7 +195,7 @@ class Map:
                 later = int(np.searchsorted(kept, birth))
                 if after_ns is None:
                     share = oldest
-                elif later == len(kept) or (later == 0 and birth < self._first_after(after_ns)):
+                elif later == len(kept) or (later == 0 and birth < first_after):
                     share = 0.0
                 else:
                     share = shares[int(kept[later])]

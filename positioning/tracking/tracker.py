@@ -57,7 +57,8 @@ from positioning.tracking import bundle
 from positioning.tracking.beginning import MapBeginning
 from positioning.tracking.hold import Drift, RayHold, position_sigma
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
-from positioning.tracking.map import Keyframe, Map
+from positioning.tracking.loop_closure import LoopClosure
+from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import beyond_motion, pose_from_map, pose_from_target_and_map
@@ -65,11 +66,8 @@ from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
 
 log = structlog.get_logger()
 
-CHI2_3DOF_99 = 11.34  # chi-square, 3 degrees of freedom: 99 % and 99.9 % quantiles
-CHI2_3DOF_999 = 16.27
 
-
-class Tracker(MapBeginning):
+class Tracker(MapBeginning, LoopClosure):
     def __init__(self, calibration: CameraCalibration, options: TrackerOptions | None = None) -> None:
         self.calibration = calibration
         self.options = options or TrackerOptions()
@@ -286,104 +284,6 @@ class Tracker(MapBeginning):
         self._frame_keyframe.position_sigma_m, self._frame_keyframe.drift_m = position_sigma(match), self._drift.grown_m
         self._frames_since_keyframe, self._kf_points_at_insert = 0, len(tracks.ids)
         return covariance
-
-    def loop_keyframes(self) -> list[Keyframe]:
-        """Keyframes this frame may close a loop with, the oldest first (the map as first
-        made, before any loop closure moved it): made
-        ``loop_min_age_s`` or more before it and not in bundle adjustment's window, neither
-        anchored (the target holds those) nor loaded, within ``loop_radius_m`` and
-        ``loop_max_angle_deg`` of its pose, and with at most ``loop_max_shared`` of their
-        points tracked now (a place left and seen again, not the place being tracked), not
-        moved by an earlier loop closure (``Keyframe.loop_moved``: its pose is then that
-        correction's guess), and whose drift is at most ``loop_max_drift_share`` of this
-        frame's. None unless this frame's pose came from the map and made a keyframe."""
-        o = self.options
-        pose = self._frame_pose
-        if pose is None or self._frame_keyframe is None or self.holding or self._frame_target is not None:
-            return []
-        keyframes = list(self.map.keyframes.values())[: -self.options.bundle.window_keyframes]
-        live = self._frame_tracks.ids
-        axis = pose.rotation[:, 2]
-        near = []
-        for kf in keyframes:
-            if kf.anchored or kf.kf_id in self.map.fixed or kf.loop_moved or not len(kf.descriptor_ids):
-                continue
-            if (self._frame_stamp - kf.stamp_ns) / 1e9 < o.loop_min_age_s:
-                continue
-            distance = float(np.linalg.norm(kf.T_world_camera.translation - pose.translation))
-            angle = np.degrees(np.arccos(np.clip(kf.T_world_camera.rotation[:, 2] @ axis, -1.0, 1.0)))
-            if distance > o.loop_radius_m or angle > o.loop_max_angle_deg:
-                continue
-            if np.isin(kf.descriptor_ids, live).mean() > o.loop_max_shared:
-                continue
-            drift = kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0
-            if drift > o.loop_max_drift_share * self._drift.grown_m:
-                continue  # about as sure as this frame: little to correct, and its own error to take on
-            near.append((kf.kf_id, kf))
-        near.sort(key=lambda pair: pair[0])  # the oldest first
-        return [kf for _, kf in near[: o.loop_keyframes]]
-
-    def close_loop(self, stamp_ns: int, pose: Transform, covariance: np.ndarray, reference: Keyframe) -> str:
-        """This frame, tracked on the map, was found again in ``reference`` (one of
-        ``loop_keyframes``) at ``pose`` with the match's ``covariance``: one piece of
-        evidence of how far the map has drifted since the reference (the offset between
-        the two poses, its position and its rotation about the camera). A match that puts
-        the camera further than this frame's own covariance, drift included, allows
-        (chi-square 99.9 %, 3 dof) is the match's error: ``"refused"``. The map is moved
-        once ``loop_matches`` pieces within ``loop_window_s`` agree with their median
-        (99.9 %) and the median is beyond its noise (99 %): the map made since the surest
-        of their references (the least drift) is moved onto it, the drift spread along the
-        way (``Map.correct``, as for the target's return): ``"closed"``; the median within
-        its noise: ``"agrees"`` (nothing to move); else ``"pending"``.
-        One match is not enough: from another viewpoint the old points' own errors put it
-        3-25 mm off (the laps scenario, where the drift it corrects is 8 mm)."""
-        current = self._frame_pose
-        if current is None or self._last_stamp != stamp_ns or self._last_covariance is None:
-            return "refused"
-        offset = pose.translation - current.translation
-        match = np.asarray(covariance)[:3, :3]
-        allowed = np.asarray(self._last_covariance)[:3, :3] + match
-        if offset @ np.linalg.solve(allowed, offset) > CHI2_3DOF_999:
-            self.loops_refused += 1
-            log.debug("tracker.loop_refused", offset_m=float(np.linalg.norm(offset)))
-            return "refused"
-        o = self.options
-        turn = pose.rotation @ current.rotation.T
-        evidence = [e for e in self._loop_evidence if (stamp_ns - e[0]) / 1e9 <= o.loop_window_s]
-        evidence.append((stamp_ns, offset, np.linalg.inv(match), Transform(turn, np.zeros(3)).rvec(), reference))
-        # the evidence is of one drift: offsets measured since agree once the first closes
-        self._loop_evidence = evidence
-        if len(evidence) < o.loop_matches:
-            return "pending"
-        information = sum(e[2] for e in evidence)
-        mean = np.median([e[1] for e in evidence], axis=0)  # robust: one match in several is far off
-        if any((e[1] - mean) @ e[2] @ (e[1] - mean) > CHI2_3DOF_999 for e in evidence):
-            self._loop_evidence = evidence[1:]  # the oldest goes: the rest may agree without it
-            return "pending"
-        self._loop_evidence = []
-        # the matches' own scatter, where it is wider than they claim (the old points' errors
-        # seen from another viewpoint are not in a match's covariance)
-        offsets = np.array([e[1] for e in evidence])
-        scatter = np.cov(offsets.T) / len(evidence)
-        if mean @ np.linalg.solve(np.linalg.inv(information) + scatter, mean) <= CHI2_3DOF_99:
-            return "agrees"
-        rotation = Transform.from_rvec_tvec(np.median([e[3] for e in evidence], axis=0), np.zeros(3)).rotation
-        centre = current.translation
-        correction = Transform(rotation, centre + mean - rotation @ centre)
-        surest = min((e[4] for e in evidence), key=lambda kf: kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0)
-        within = surest.stamp_ns > self._target_stamp  # the reference made since the target
-        since = surest.drift_m if within else 0.0
-        self.map.correct(correction, self._drift.grown_m, since, max(surest.stamp_ns, self._target_stamp))
-        self._drift.rewind(since)
-        self._drift.relocalised(np.linalg.inv(information))
-        self.loops_closed += 1
-        log.debug("tracker.loop_closed", offset_m=float(np.linalg.norm(mean)), reference=surest.kf_id)
-        pose = correction @ current
-        self.last_closure = (stamp_ns, current, pose)
-        self._last = self._frame_pose = pose
-        self._measured = (pose, stamp_ns)
-        self._hold.rebase(pose, self._frame_tracks.ids, self._frame_xn)
-        return "closed"
 
     @property
     def last_pose(self) -> Transform | None:
