@@ -131,7 +131,7 @@ def run(tracker: Tracker, source: SyntheticTracks, poses: list[Transform], targe
         out = tracker.step(i * 100_000_000, tracks, observation)
         source.alive.difference_update(int(t) for t in out.drop_ids)
         if out.want_features:
-            tracker.add_tracks(source.detect())
+            tracker.add_tracks(out.frame, source.detect())
         if paced and out.keyframe:
             tracker.wait_for_bundle()
         outputs.append(out)
@@ -328,7 +328,7 @@ def lost_then_cube(unsure, sure, n: int = 110):
         source.alive.difference_update(int(t) - offset for t in out.drop_ids)
         if out.want_features:
             fresh = source.detect()
-            tracker.add_tracks(Tracks(fresh.ids + offset, fresh.pixels))
+            tracker.add_tracks(out.frame, Tracks(fresh.ids + offset, fresh.pixels))
         outputs.append(out)
     return poses, outputs
 

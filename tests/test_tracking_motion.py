@@ -133,6 +133,7 @@ def test_a_position_held_on_rays_alone_claims_no_more_than_the_robot_s_motion_al
     from positioning.camera_model import project_normalised
     from positioning.tracking.hold import RayHold
     from positioning.tracking.map import Map
+    from positioning.tracking.motion import MotionModel
     from positioning.tracking.options import TrackerOptions
 
     fx = 800.0
@@ -142,7 +143,7 @@ def test_a_position_held_on_rays_alone_claims_no_more_than_the_robot_s_motion_al
     def seen(pose: Transform) -> np.ndarray:
         return project_normalised(pose.inverse(), points)[0] + rng.normal(0, 0.3 / fx, (300, 2))
 
-    hold = RayHold(TrackerOptions(), fx)
+    hold, motion = RayHold(TrackerOptions(), fx), MotionModel(TrackerOptions())
     last, last_stamp, ids = Transform.identity(), 0, np.arange(300)
     hold.rebase(last, ids, seen(last))
     nees = []
@@ -151,7 +152,8 @@ def test_a_position_held_on_rays_alone_claims_no_more_than_the_robot_s_motion_al
         xn = seen(truth)
         # the motion model's first prediction carries the speed it had; later ones the held poses'
         prediction = Transform(np.eye(3), np.array([0.0, 0.0, 0.03])) if k == 1 else last
-        held = hold.hold(k * 100_000_000, last, last_stamp, prediction, Tracks(ids, xn * fx), xn, Map())
+        motion.last, motion.stamp = last, last_stamp
+        held = hold.hold(k * 100_000_000, motion, prediction, Tracks(ids, xn * fx), xn, Map())
         assert held is not None, k
         last, last_stamp = held[0], k * 100_000_000
         error = last.translation - truth.translation

@@ -23,7 +23,8 @@ from positioning.camera_model import undistort
 from positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
 from positioning.geometry import Transform
 from positioning.tracking.initialiser import InitFrame, InitResult, InitStatus, out_of_view
-from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
+from positioning.tracking.map import Keyframe
+from positioning.tracking.types import TargetObservation, TrackedFrame, TrackerOutput
 
 log = structlog.get_logger()
 
@@ -37,69 +38,69 @@ class MapBeginning:
         the map gives a pose again or the target anchors a keyframe."""
         return self._beginning_again
 
-    def _initialising(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
-                      trusted: TargetObservation | None) -> TrackerOutput:
+    def _initialising(self, frame: TrackedFrame, trusted: TargetObservation | None) -> TrackerOutput:
         """A frame while no map exists, or while it begins again: Algorithm 1 or 2 on a
         trusted target pose; without one, the hold on rays, or the map begun on the
         target's longest baseline when the target has left."""
         empty = np.zeros(0, np.int64)
+        stamp_ns, tracks, xn = frame.stamp_ns, frame.tracks, frame.xn
         if trusted is None:
             status = InitStatus.NO_TARGET_POSE
             prediction = self.predict(stamp_ns)
-            held = None if prediction is None else self._hold.hold(stamp_ns, self._last, self._last_stamp,
-                                                                    prediction, tracks, xn, self.map)
-            departed = self._departed(held, stamp_ns, tracks)
+            held = None if prediction is None else self._hold.hold(stamp_ns, self.motion, prediction, tracks, xn,
+                                                                    self.map)
+            departed = self._departed(frame, held)
             if departed is not None:
                 return departed
             if held is None:
                 self._hold.end()
-                return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status)
+                return TrackerOutput(FrameResult(None, "initialising", "waiting for the target"), False, empty, status,
+                                     frame=frame)
             # the target hidden (a passer-by) before the map exists: held on the rays of
             # tracks born on target poses, the map still waits for the target
-            pose, covariance = held[0], self._drift.covariance(self._last, held[0], held[1])  # the path since
+            pose, covariance = held[0], self._drift.covariance(self.motion.last, held[0], held[1])  # the path since
             self._hold.rebase(None, tracks.ids, xn)
-            self._update_motion(pose, stamp_ns)
-            self._frame_pose = pose
+            self.motion.update(pose, stamp_ns)
             estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, covariance, PoseSource.HELD)
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
-                                 empty, status)
+                                 empty, status, frame=replace(frame, pose=pose))
         self._hold.end()
         state = PoseState.TARGET
         if self.initialised:  # beginning again: the map gave no pose in this frame
             state = PoseState.RELOCALISED if self.lost else state
-            self.lost, self._target_seen, self._last_covariance = False, True, trusted.published_covariance
+            self.lost, self._target_seen, self.motion.covariance = False, True, trusted.published_covariance
             self._drift.reset()
         estimate = PoseEstimate(trusted.T_world_camera, state, trusted.planes, trusted.tag_ids,
                                 trusted.reproj_rms_px, trusted.published_covariance, PoseSource.TARGET)
         status = "relocalised" if state is PoseState.RELOCALISED else "ok"
         self._hold.rebase(trusted.T_world_camera, tracks.ids, xn)
         # beginning again, the pose is too unsure to anchor a keyframe: not taken for motion either
-        self._update_motion(trusted.T_world_camera, stamp_ns, noisy=self.initialised)
+        self.motion.update(trusted.T_world_camera, stamp_ns, noisy=self.initialised)
         if not self._anchors(trusted):
             # published, but too uncertain to fix the map's scale and frame
             return TrackerOutput(FrameResult(estimate, status, "initialising: target pose too uncertain to anchor"),
-                                 False, empty, InitStatus.UNCERTAIN_TARGET_POSE)
-        frame = InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, tracks.ids, xn)
+                                 False, empty, InitStatus.UNCERTAIN_TARGET_POSE, frame=frame)
+        init = InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, tracks.ids, xn)
         if self.initialiser.reference is None:
             # Algorithm 1 runs on this frame once the front end has added fresh corners
             return TrackerOutput(FrameResult(estimate, status, "initialising: reference frame"), True, empty,
-                                 InitStatus.REFERENCE_SET)
-        result = self.initialiser.step(frame)
+                                 InitStatus.REFERENCE_SET, frame=frame)
+        result = self.initialiser.step(init)
         best = self._best_target
-        if self.initialiser.best is frame or self.initialiser.best is None:
-            self._best_target = trusted if self.initialiser.best is frame else None
+        if self.initialiser.best is init or self.initialiser.best is None:
+            self._best_target = trusted if self.initialiser.best is init else None
         if result.status is InitStatus.TOO_FEW_MATCHES:
-            return TrackerOutput(FrameResult(estimate, status, result.detail), True, empty, result.status)
+            return TrackerOutput(FrameResult(estimate, status, result.detail), True, empty, result.status, frame=frame)
         if result.status is not InitStatus.INITIALISED:
-            return TrackerOutput(FrameResult(estimate, status, result.detail), False, empty, result.status)
-        if result.frame is not frame:  # the reference's tracks ran out: the longest baseline weighed
-            return self._begin_on_earlier_frame(result, best, stamp_ns, tracks)
-        self._start_map(result, trusted)
-        self._frame_pose = trusted.T_world_camera
-        return TrackerOutput(FrameResult(estimate, status, result.detail), True, empty, result.status, True)
+            return TrackerOutput(FrameResult(estimate, status, result.detail), False, empty, result.status,
+                                 frame=frame)
+        if result.frame is not init:  # the reference's tracks ran out: the longest baseline weighed
+            return self._begin_on_earlier_frame(result, best, frame)
+        keyframe = self._start_map(result, trusted)
+        return TrackerOutput(FrameResult(estimate, status, result.detail), True, empty, result.status, True,
+                             frame=replace(frame, pose=trusted.T_world_camera, keyframe=keyframe))
 
-    def _departed(self, held: tuple[Transform, np.ndarray] | None, stamp_ns: int, tracks: Tracks
-                  ) -> TrackerOutput | None:
+    def _departed(self, frame: TrackedFrame, held: tuple[Transform, np.ndarray] | None) -> TrackerOutput | None:
         """The target has left the view (or nothing holds the pose without it) before
         Algorithm 2's median parallax: the map begins on the target's longest baseline, and
         this frame is tracked on it; None when there is no such baseline or it does not begin."""
@@ -110,18 +111,19 @@ class MapBeginning:
         self._best_target = None
         if result.status is not InitStatus.INITIALISED:
             return None
-        return self._begin_on_earlier_frame(result, best, stamp_ns, tracks)
+        return self._begin_on_earlier_frame(result, best, frame)
 
-    def _begin_on_earlier_frame(self, result: InitResult, target_b: TargetObservation, stamp_ns: int,
-                                tracks: Tracks) -> TrackerOutput:
+    def _begin_on_earlier_frame(self, result: InitResult, target_b: TargetObservation, frame: TrackedFrame
+                                ) -> TrackerOutput:
         """The map begins on an earlier frame B (``Initialiser.on_departure``), and this
         frame is tracked on it."""
         self._start_map(result, target_b)
         self._hold.end()
-        return replace(self.step(stamp_ns, tracks, self._frame_target), init_status=result.status)
+        return replace(self.step(frame.stamp_ns, frame.tracks, frame.target), init_status=result.status)
 
-    def _start_map(self, result: InitResult, target_b: TargetObservation) -> None:
-        """The map of an initialisation: keyframes A and B, anchored on the target, and the points."""
+    def _start_map(self, result: InitResult, target_b: TargetObservation) -> Keyframe:
+        """The map of an initialisation: keyframes A and B, anchored on the target, and the
+        points; returns B."""
         log.debug("tracker.initialised", detail=result.detail)
         a, ta, b = result.reference, self._reference_target, result.frame
         kf_a = self.map.add_keyframe(a.stamp_ns, a.T_world_camera, a.track_ids, a.xn,
@@ -130,23 +132,24 @@ class MapBeginning:
                                      target_b.corners_world, undistort(target_b.corners_px, self.calibration))
         for track_id, point in zip(result.track_ids, result.points_world, strict=True):
             self.map.add_point(int(track_id), point, kf_a.kf_id)
-        self.initialised, self.lost, self._frame_keyframe = True, False, kf_b
+        self.initialised, self.lost = True, False
         self._beginning_again = False
         self.initialiser.reset()
         self._kf_points_at_insert, self._frames_since_keyframe = len(result.track_ids), 0
         self._schedule_bundle()
+        return kf_b
 
-    def _beginning_again_on(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray,
-                            trusted: TargetObservation | None, tracked: bool) -> TrackerOutput | None:
+    def _beginning_again_on(self, frame: TrackedFrame, trusted: TargetObservation | None, tracked: bool
+                            ) -> TrackerOutput | None:
         """A frame of a map that exists: this frame's output when the map begins again on
         ``trusted`` (or goes on beginning), None when the frame takes the usual way
         (``tracked``: the map gave a pose, which ends a beginning, as an anchoring pose does)."""
         if not tracked and trusted is not None and self._begins_again(trusted):
-            return self._initialising(stamp_ns, tracks, xn, trusted)
+            return self._initialising(frame, trusted)
         anchoring = self._anchors(trusted, self.options.anchor_max_position_std_m)
         if not tracked and anchoring and self._beginning_again:
             # a pose that anchors keyframes is also Algorithm 2's frame B for the reference held
-            begun = self._completes_beginning(stamp_ns, tracks, xn, trusted)
+            begun = self._completes_beginning(frame, trusted)
             if begun is not None:
                 return begun
         if tracked or anchoring:
@@ -171,18 +174,18 @@ class MapBeginning:
             self._best_target = None
         return True
 
-    def _completes_beginning(self, stamp_ns: int, tracks: Tracks, xn: np.ndarray, trusted: TargetObservation
-                             ) -> TrackerOutput | None:
+    def _completes_beginning(self, frame: TrackedFrame, trusted: TargetObservation) -> TrackerOutput | None:
         """Algorithm 2 on an anchoring target pose while the map begins again: when it
         pairs with the reference, the map begins and this frame is tracked on it; else None
         (the anchored keyframes take it from here)."""
-        earlier = self._best_target
-        result = self.initialiser.step(InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, tracks.ids, xn))
+        earlier, stamp_ns = self._best_target, frame.stamp_ns
+        result = self.initialiser.step(InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, frame.tracks.ids,
+                                                 frame.xn))
         if result.status is not InitStatus.INITIALISED:
             return None
         self._start_map(result, trusted if result.frame.stamp_ns == stamp_ns else earlier)
         self._hold.end()
-        return replace(self.step(stamp_ns, tracks, trusted), init_status=result.status)
+        return replace(self.step(stamp_ns, frame.tracks, trusted), init_status=result.status)
 
     def _end_beginning_again(self) -> None:
         """The map gives a pose again (or the target anchors one): Algorithm 2 stops."""

@@ -5,7 +5,7 @@ pose (its camera centre and world direction). When PnP has too few map points (a
 the spot, a passer-by in front of the map) ``hold`` fits the orientation to those rays and
 the position to the map points still in view and the motion model (``pose_fit``), whose
 standard deviation grows with the time held; with too few rays as well it coasts on the
-motion model alone for at most ``max_coast_s``.
+motion model alone for at most ``max_coast_s`` (``motion.MotionModel.coast``).
 
 ``Drift`` adds to a tracking pose's covariance what its own measurements cannot know: how
 far the map may have drifted since the target was last trusted, growing with the path at
@@ -21,11 +21,10 @@ import numpy as np
 
 from positioning.geometry import Transform
 from positioning.tracking.map import Map
+from positioning.tracking.motion import Held, MotionModel
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import Rays, fit_pose
 from positioning.tracking.types import Tracks
-
-Held = tuple[Transform, np.ndarray]  # pose and its 6x6 covariance (ROS order)
 
 
 def position_sigma(covariance: np.ndarray | None) -> float:
@@ -69,24 +68,22 @@ class RayHold:
         directions /= np.linalg.norm(directions, axis=1)[:, None]
         return {int(t): (pose.translation, d) for t, d in zip(ids, directions, strict=True)}
 
-    def hold(self, stamp_ns: int, last: Transform, last_stamp: int, prediction: Transform, tracks: Tracks,
+    def hold(self, stamp_ns: int, motion: MotionModel, prediction: Transform, tracks: Tracks,
              xn: np.ndarray, world_map: Map, odometry: np.ndarray | None = None) -> Held | None:
-        """The held pose of the frame at ``stamp_ns`` (``last`` is the last frame's pose,
-        ``prediction`` the motion model's, or the wheel odometry's when ``odometry``, its
+        """The held pose of the frame at ``stamp_ns`` (``motion`` has the last frame's pose,
+        ``prediction`` is its prediction, or the wheel odometry's when ``odometry``, its
         covariance since the hold began, is given), or None when rays and time do not allow it."""
         o = self.options
         if self.since is None:
-            self.since = last_stamp
-            step_s = (stamp_ns - last_stamp) / 1e9
-            self.speed_m_s = float(np.linalg.norm(prediction.translation - last.translation)) / step_s \
-                if step_s > 0 else 0.0
+            self.since = motion.stamp
+            self.speed_m_s = motion.speed(prediction, stamp_ns)
         held_s = (stamp_ns - self.since) / 1e9
         if held_s > o.max_hold_s:
             return None
         has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
         born = np.array([not h and int(t) in self.rays for t, h in zip(tracks.ids, has, strict=True)], bool)
         if born.sum() < o.min_hold_rays:
-            return self._coast(held_s, prediction)
+            return motion.coast(prediction, held_s)
         points = np.array([world_map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)
         depths = prediction.inverse().apply(points)[:, 2] if has.any() else np.zeros(0)
         depths = depths[depths > 0]
@@ -97,9 +94,7 @@ class RayHold:
         if odometry is not None:  # the wheels measured the translation: the odometry's, with its sigma
             prior = (prediction.translation, float(np.sqrt(o.hold_sigma_m**2 + odometry[0, 0])))
         else:  # no measured translation: the motion model's dies away (it moved the prediction)
-            decay = 0.5 ** ((stamp_ns - last_stamp) / 1e9 / o.hold_velocity_half_life_s)
-            prior = (last.translation + decay * (prediction.translation - last.translation),
-                     o.hold_sigma_m + o.hold_sigma_m_per_s * held_s)
+            prior = (motion.faded(prediction, stamp_ns), o.hold_sigma_m + o.hold_sigma_m_per_s * held_s)
         fit = fit_pose(prediction, points, xn[has], rays, fx=self.fx, sigma_px=o.track_sigma_px,
                        prior_position=prior)
         if fit is not None and 0 < fit.point_inliers.sum() < o.min_hold_points:
@@ -118,34 +113,10 @@ class RayHold:
             # held pose, agree with a position left behind): it is as unsure as the robot's
             # motion allows (docs/family.md, "What was traced")
             covariance = covariance.copy()
-            floor = self.unmeasured_sigma(held_s) ** 2
+            floor = motion.unmeasured_sigma(self.speed_m_s, held_s) ** 2
             smallest = float(np.min(np.linalg.eigvalsh(covariance[:3, :3])))
             covariance[:3, :3] += np.eye(3) * max(0.0, floor - smallest)
         return fit.T_world_camera, covariance
-
-    def unmeasured_sigma(self, held_s: float) -> float:
-        """The standard deviation of a position nothing has measured for ``held_s`` seconds:
-        the robot may have gone on at the speed it had when the hold began (the motion model
-        lets that speed die away) or changed it by ``coast_accel_m_s2`` (0.5 a t^2), as the
-        coast assumes."""
-        o = self.options
-        return o.hold_sigma_m + (o.hold_sigma_m_per_s + self.speed_m_s) * held_s \
-            + 0.5 * o.coast_accel_m_s2 * held_s * held_s
-
-    def _coast(self, held_s: float, prediction: Transform) -> Held | None:
-        """Nothing to see (a passer-by filling the view): the motion model's pose (the wheel
-        odometry's, where there is some) for at most ``max_coast_s`` since the last measured
-        one, with the covariance of a robot that may have changed its speed by
-        ``coast_accel_m_s2`` and its turn rate by ``coast_angular_accel_rad_s2`` meanwhile
-        (0.5 a t^2)."""
-        o = self.options
-        if held_s > o.max_coast_s:
-            return None
-        t = max(held_s, 1e-3)
-        covariance = np.zeros((6, 6))
-        covariance[:3, :3] = np.eye(3) * (o.hold_sigma_m + 0.5 * o.coast_accel_m_s2 * t * t) ** 2
-        covariance[3:, 3:] = np.eye(3) * (0.5 * o.coast_angular_accel_rad_s2 * t * t) ** 2
-        return prediction, covariance
 
 
 class Drift:

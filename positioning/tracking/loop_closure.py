@@ -6,11 +6,14 @@ Off by default (``TrackerOptions.loop_closure``).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import structlog
 
 from positioning.geometry import Transform
 from positioning.tracking.map import Keyframe
+from positioning.tracking.types import TrackedFrame
 
 log = structlog.get_logger()
 
@@ -19,7 +22,7 @@ CHI2_3DOF_999 = 16.27
 
 
 class LoopClosure:
-    def loop_keyframes(self) -> list[Keyframe]:
+    def loop_keyframes(self, frame: TrackedFrame) -> list[Keyframe]:
         """Keyframes this frame may close a loop with, the oldest first (the map as first
         made, before any loop closure moved it): made
         ``loop_min_age_s`` or more before it and not in bundle adjustment's window, neither
@@ -28,19 +31,19 @@ class LoopClosure:
         points tracked now (a place left and seen again, not the place being tracked), not
         moved by an earlier loop closure (``Keyframe.loop_moved``: its pose is then that
         correction's guess), and whose drift is at most ``loop_max_drift_share`` of this
-        frame's. None unless this frame's pose came from the map and made a keyframe."""
+        frame's. None unless ``frame``'s pose came from the map and made a keyframe."""
         o = self.options
-        pose = self._frame_pose
-        if pose is None or self._frame_keyframe is None or self.holding or self._frame_target is not None:
+        pose = frame.pose
+        if pose is None or frame.keyframe is None or self.holding or frame.target is not None:
             return []
         keyframes = list(self.map.keyframes.values())[: -self.options.bundle.window_keyframes]
-        live = self._frame_tracks.ids
+        live = frame.tracks.ids
         axis = pose.rotation[:, 2]
         near = []
         for kf in keyframes:
             if kf.anchored or kf.kf_id in self.map.fixed or kf.loop_moved or not len(kf.descriptor_ids):
                 continue
-            if (self._frame_stamp - kf.stamp_ns) / 1e9 < o.loop_min_age_s:
+            if (frame.stamp_ns - kf.stamp_ns) / 1e9 < o.loop_min_age_s:
                 continue
             distance = float(np.linalg.norm(kf.T_world_camera.translation - pose.translation))
             angle = np.degrees(np.arccos(np.clip(kf.T_world_camera.rotation[:, 2] @ axis, -1.0, 1.0)))
@@ -55,8 +58,9 @@ class LoopClosure:
         near.sort(key=lambda pair: pair[0])  # the oldest first
         return [kf for _, kf in near[: o.loop_keyframes]]
 
-    def close_loop(self, stamp_ns: int, pose: Transform, covariance: np.ndarray, reference: Keyframe) -> str:
-        """This frame, tracked on the map, was found again in ``reference`` (one of
+    def close_loop(self, frame: TrackedFrame, pose: Transform, covariance: np.ndarray, reference: Keyframe
+                   ) -> tuple[str, TrackedFrame]:
+        """``frame``, tracked on the map, was found again in ``reference`` (one of
         ``loop_keyframes``) at ``pose`` with the match's ``covariance``: one piece of
         evidence of how far the map has drifted since the reference (the offset between
         the two poses, its position and its rotation about the camera). A match that puts
@@ -68,17 +72,18 @@ class LoopClosure:
         way (``Map.correct``, as for the target's return): ``"closed"``; the median within
         its noise: ``"agrees"`` (nothing to move); else ``"pending"``.
         One match is not enough: from another viewpoint the old points' own errors put it
-        3-25 mm off (the laps scenario, where the drift it corrects is 8 mm)."""
-        current = self._frame_pose
-        if current is None or self._last_stamp != stamp_ns or self._last_covariance is None:
-            return "refused"
+        3-25 mm off (the laps scenario, where the drift it corrects is 8 mm). Returns the
+        outcome and the frame (at its new pose when the loop closed)."""
+        current, stamp_ns = frame.pose, frame.stamp_ns
+        if current is None or self.motion.stamp != stamp_ns or self.motion.covariance is None:
+            return "refused", frame
         offset = pose.translation - current.translation
         match = np.asarray(covariance)[:3, :3]
-        allowed = np.asarray(self._last_covariance)[:3, :3] + match
+        allowed = np.asarray(self.motion.covariance)[:3, :3] + match
         if offset @ np.linalg.solve(allowed, offset) > CHI2_3DOF_999:
             self.loops_refused += 1
             log.debug("tracker.loop_refused", offset_m=float(np.linalg.norm(offset)))
-            return "refused"
+            return "refused", frame
         o = self.options
         turn = pose.rotation @ current.rotation.T
         evidence = [e for e in self._loop_evidence if (stamp_ns - e[0]) / 1e9 <= o.loop_window_s]
@@ -86,19 +91,19 @@ class LoopClosure:
         # the evidence is of one drift: offsets measured since agree once the first closes
         self._loop_evidence = evidence
         if len(evidence) < o.loop_matches:
-            return "pending"
+            return "pending", frame
         information = sum(e[2] for e in evidence)
         mean = np.median([e[1] for e in evidence], axis=0)  # robust: one match in several is far off
         if any((e[1] - mean) @ e[2] @ (e[1] - mean) > CHI2_3DOF_999 for e in evidence):
             self._loop_evidence = evidence[1:]  # the oldest goes: the rest may agree without it
-            return "pending"
+            return "pending", frame
         self._loop_evidence = []
         # the matches' own scatter, where it is wider than they claim (the old points' errors
         # seen from another viewpoint are not in a match's covariance)
         offsets = np.array([e[1] for e in evidence])
         scatter = np.cov(offsets.T) / len(evidence)
         if mean @ np.linalg.solve(np.linalg.inv(information) + scatter, mean) <= CHI2_3DOF_99:
-            return "agrees"
+            return "agrees", frame
         rotation = Transform.from_rvec_tvec(np.median([e[3] for e in evidence], axis=0), np.zeros(3)).rotation
         centre = current.translation
         correction = Transform(rotation, centre + mean - rotation @ centre)
@@ -112,7 +117,6 @@ class LoopClosure:
         log.debug("tracker.loop_closed", offset_m=float(np.linalg.norm(mean)), reference=surest.kf_id)
         pose = correction @ current
         self.last_closure = (stamp_ns, current, pose)
-        self._last = self._frame_pose = pose
-        self._measured = (pose, stamp_ns)
-        self._hold.rebase(pose, self._frame_tracks.ids, self._frame_xn)
-        return "closed"
+        self.motion.moved(pose, stamp_ns)
+        self._hold.rebase(pose, frame.tracks.ids, frame.xn)
+        return "closed", replace(frame, pose=pose)

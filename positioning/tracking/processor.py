@@ -44,7 +44,7 @@ from positioning.tracking.map import Map
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.relocalise import Relocaliser
 from positioning.tracking.tracker import Tracker
-from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
+from positioning.tracking.types import TargetObservation, TrackedFrame, TrackerOutput, Tracks
 
 
 @dataclass(frozen=True)
@@ -114,8 +114,7 @@ class TrackingProcessor:
         self.observer.reset()
         world_map = self._map_source() if self._map_source is not None else None
         if world_map is not None and world_map.keyframes:
-            self.tracker.map = world_map
-            self.tracker.initialised, self.tracker.lost = True, True
+            self.tracker.start_lost_on(world_map)
             ids = [max(world_map.points, default=-1)] + [int(kf.track_ids.max())
                                                          for kf in world_map.keyframes.values() if len(kf.track_ids)]
             self.front_end.ids_from(max(ids) + 1)
@@ -170,7 +169,7 @@ class TrackingProcessor:
         observation, seen, outlines = self._observe_target(image, stamp_ns, seq)
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
-        result = out.result
+        result, frame = out.result, out.frame
         # lost (bridged by wheel odometry or not), held on rays, or beginning the map again
         # on the target: look for the map's keyframes; a match ends each
         bridged = _source(result) is PoseSource.ODOMETRY
@@ -180,17 +179,17 @@ class TrackingProcessor:
             self._lost_frames += 1
             every = 1 if self._booting else self.options.relocalise_every  # at boot nothing else can give a pose
             if (self._lost_frames - 1) % every == 0:  # it costs ~4 KLT steps
-                result = self._relocalise(image, stamp_ns, result)
+                result, frame = self._relocalise(image, stamp_ns, result, frame)
                 bridged = _source(result) is PoseSource.ODOMETRY
             want = result.estimate is not None and not bridged
         else:
             want = out.want_features or self.tracker.holding  # held: fresh corners keep the rays coming
             if out.keyframe and self.options.tracker.loop_closure and _source(result) is PoseSource.MAP:
-                result = self._close_loop(image, stamp_ns, result)
+                result, frame = self._close_loop(image, frame, result)
         if result.estimate is not None and not self.tracker.holding and not bridged:
             self._lost_frames = 0
         if want:
-            self._add_features(image, out, result)
+            self._add_features(image, frame, out.keyframe, result)
         if self._booting:
             result = self._verified(result)
         return FrameResult(result.estimate, result.status, result.detail, seen, self._view(outlines, tracks, out))
@@ -223,62 +222,66 @@ class TrackingProcessor:
         states[np.isin(tracks.ids, out.drop_ids)] = FeatureState.OUTLIER
         return FrameView(outlines, tracks.pixels, states)
 
-    def _add_features(self, image: np.ndarray, out: TrackerOutput, result: FrameResult) -> None:
+    def _add_features(self, image: np.ndarray, frame: TrackedFrame, keyframe: bool, result: FrameResult) -> None:
+        """Fresh corners for ``frame``; on a ``keyframe`` (made by ``Tracker.step``) its
+        descriptors, and on a loaded map its points found again."""
         pose = result.estimate.T_world_camera if result.estimate is not None else self._last_target_pose
         new = self.front_end.detect(image, self._target_outline(pose))
-        self.tracker.add_tracks(new)
-        if out.keyframe and self.tracker.map.last_keyframe is not None:
+        frame = self.tracker.add_tracks(frame, new)
+        if keyframe and self.tracker.map.last_keyframe is not None:
             if self.tracker.map.fixed and result.estimate is not None and self.options.tracker.refind:
                 # on a loaded map: its points found again, and those not found where they should be retired
                 again = self.relocaliser.refind(image, self.tracker.map, result.estimate.T_world_camera,
                                                 self.front_end.ids)
                 self.front_end.adopt(again.ids, again.pixels)
-                self.tracker.add_tracks(Tracks(again.ids, again.pixels))
+                self.tracker.add_tracks(frame, Tracks(again.ids, again.pixels))
                 self.tracker.map.retire(again.visible, again.found, result.estimate.T_world_camera.translation,
                                         self.options.tracker)
             tracks = self.front_end.tracks
             self.relocaliser.describe(image, self.tracker.map.last_keyframe, self.tracker.map, tracks.ids,
                                       tracks.pixels)
 
-    def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult) -> FrameResult:
+    def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult, frame: TrackedFrame
+                    ) -> tuple[FrameResult, TrackedFrame]:
         found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting)
         if found is None:
-            return lost
+            return lost, frame
         self.front_end.adopt(found.point_ids, found.pixels)
-        covariance = self.tracker.relocalised(stamp_ns, found.T_world_camera, Tracks(found.point_ids, found.pixels),
-                                              found.covariance)
+        covariance, frame = self.tracker.relocalised(stamp_ns, found.T_world_camera,
+                                                     Tracks(found.point_ids, found.pixels), found.covariance)
         estimate = PoseEstimate(found.T_world_camera, PoseState.RELOCALISED, 0, (), 0.0, covariance,
                                 PoseSource.RELOCALISED)
-        return FrameResult(estimate, "relocalised", f"{len(found.point_ids)} map points found again")
+        return FrameResult(estimate, "relocalised", f"{len(found.point_ids)} map points found again"), frame
 
-    def _close_loop(self, image: np.ndarray, stamp_ns: int, tracked: FrameResult) -> FrameResult:
+    def _close_loop(self, image: np.ndarray, frame: TrackedFrame, tracked: FrameResult
+                    ) -> tuple[FrameResult, TrackedFrame]:
         """A keyframe tracked on the map, near keyframes made long ago: matched against
         their points (not those tracked now), the match one piece of evidence for
         ``Tracker.close_loop``; when the loop closes (or the evidence agrees with the map)
         the points found again are followed as tracks (bundle adjustment then ties the old
         and the new keyframes), and a closed loop gives this frame's pose."""
-        candidates = self.tracker.loop_keyframes()
+        candidates = self.tracker.loop_keyframes(frame)
         if not candidates:
-            return tracked
+            return tracked, frame
         found = self.relocaliser.relocalise(image, self.tracker.map, among=candidates,
                                             excluding={int(t) for t in self.front_end.ids})
         if found is None:
-            return tracked
+            return tracked, frame
         reference = max(candidates, key=lambda kf: np.isin(found.point_ids, kf.descriptor_ids).sum())
-        outcome = self.tracker.close_loop(stamp_ns, found.T_world_camera, found.covariance, reference)
+        outcome, frame = self.tracker.close_loop(frame, found.T_world_camera, found.covariance, reference)
         if outcome in ("refused", "pending"):
-            return tracked
+            return tracked, frame
         self.front_end.adopt(found.point_ids, found.pixels)
-        self.tracker.add_tracks(Tracks(found.point_ids, found.pixels))
+        frame = self.tracker.add_tracks(frame, Tracks(found.point_ids, found.pixels))
         if outcome == "agrees":
-            return tracked
-        before, after = tracked.estimate, self.tracker.last_pose
+            return tracked, frame
+        before, after = tracked.estimate, frame.pose
         jumped = self.tracker.jumped(before.T_world_camera, after)
         estimate = dataclasses.replace(before, T_world_camera=after,
                                        state=PoseState.RELOCALISED if jumped else before.state,
                                        source=PoseSource.RELOCALISED)
         return FrameResult(estimate, "relocalised" if jumped else tracked.status,
-                           f"loop closed: {len(found.point_ids)} points of keyframe {reference.kf_id} found again")
+                           f"loop closed: {len(found.point_ids)} points of keyframe {reference.kf_id} found again"), frame
 
 
 def _source(result: FrameResult) -> PoseSource | None:

@@ -58,11 +58,12 @@ from positioning.tracking.beginning import MapBeginning
 from positioning.tracking.hold import Drift, RayHold, position_sigma
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.loop_closure import LoopClosure
-from positioning.tracking.map import Map
+from positioning.tracking.map import Keyframe, Map
+from positioning.tracking.motion import MotionModel
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import beyond_motion, pose_from_map, pose_from_target_and_map
-from positioning.tracking.types import TargetObservation, TrackerOutput, Tracks
+from positioning.tracking.pose_fit import pose_from_map, pose_from_target_and_map
+from positioning.tracking.types import TargetObservation, TrackedFrame, TrackerOutput, Tracks
 
 log = structlog.get_logger()
 
@@ -76,6 +77,7 @@ class Tracker(MapBeginning, LoopClosure):
         self._pending: concurrent.futures.Future | None = None
         self.bundle_runs: list[bundle.BundleSolution] = []  # the last few, for benchmarks and tests
         self.odometry: OdometryPrior | None = None  # wheel odometry, when the robot gives it (kept on reset)
+        self.motion = MotionModel(self.options)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -85,19 +87,8 @@ class Tracker(MapBeginning, LoopClosure):
         self.map = Map()
         self.initialiser = Initialiser(self.options.init, self.fx)
         self.initialised, self.lost = False, False
-        self._last: Transform | None = None  # pose of the last frame with one
-        self._last_stamp, self._last_covariance = 0, None  # and its time stamp and covariance
-        # camera motion per second (rotation vector, translation of T_last_next in the last camera's
-        # frame): per second, as a live camera's frames come irregularly (the queue skips when behind)
-        self._velocity: tuple[np.ndarray, np.ndarray] | None = None
-        self._after_relocalisation = False  # the last pose came from relocalised()
-        self._measured: tuple[Transform, int] | None = None  # the last pose measured (not held), its stamp
-        self._frame_tracks, self._frame_xn = Tracks.empty(), np.zeros((0, 2))
-        self._frame_pose: Transform | None = None
-        self._frame_target: TargetObservation | None = None
-        self._frame_stamp = 0
-        self._frame_keyframe = None
-        self._frame_sigma = 0.0  # this frame's pose: its own position standard deviation
+        self.motion.reset()
+        self._tracks_stamp = 0  # the frame the front end's tracks are in (the last stepped or relocalised)
         self._scale_points_added = 0  # the map's points_added when the drift's scale was last measured
         self._reference_target: TargetObservation | None = None
         # lost, and the target sure enough to begin a map, not to anchor keyframes:
@@ -116,6 +107,12 @@ class Tracker(MapBeginning, LoopClosure):
         self._hold = RayHold(self.options, self.fx)
         self._drift = Drift(self.options)
 
+    def start_lost_on(self, world_map: Map) -> None:
+        """Track on ``world_map`` (a saved map) from the next frame: lost on it until a
+        relocalisation into its keyframes, or the target, gives a pose."""
+        self.map = world_map
+        self.initialised, self.lost = True, True
+
     def close(self) -> None:
         self._drain_bundle()
         if self._executor is not None:
@@ -124,29 +121,34 @@ class Tracker(MapBeginning, LoopClosure):
 
     # ------------------------------------------------------------------ per frame
     def step(self, stamp_ns: int, tracks: Tracks, target: TargetObservation | None) -> TrackerOutput:
+        """This frame's pose from its ``tracks`` and the ``target`` observed in it (None:
+        not seen); the output's ``frame`` is what ``add_tracks`` takes next."""
         self._collect_bundle(wait=False)
-        xn = undistort(tracks.pixels, self.calibration)
-        self._frame_tracks, self._frame_xn, self._frame_stamp = tracks, xn, stamp_ns
-        self._frame_target, self._frame_keyframe, self._frame_pose = target, None, None
+        self._tracks_stamp = stamp_ns
+        return self._step(TrackedFrame(stamp_ns, tracks, undistort(tracks.pixels, self.calibration), target))
+
+    def _step(self, frame: TrackedFrame) -> TrackerOutput:
+        stamp_ns, tracks, xn, target = frame.stamp_ns, frame.tracks, frame.xn, frame.target
         trusted = target if target is not None and target.planes >= self.options.init.min_planes else None
         if not self.initialised:
-            return self._initialising(stamp_ns, tracks, xn, trusted)
+            return self._initialising(frame, trusted)
 
         prediction = self.predict(stamp_ns)
         tracked, inliers, drop, rms, covariance = pose_from_map(self.map, tracks, xn, prediction, self.options,
                                                                 self.fx)
+        last = self.motion.last
         if self.odometry is not None:  # the wheels' motion since the last pose: a relative-motion factor
-            tracked, covariance = self.odometry.fuse(tracked, covariance, self._last, self._last_stamp, stamp_ns)
-        begun = self._beginning_again_on(stamp_ns, tracks, xn, trusted, tracked is not None)
+            tracked, covariance = self.odometry.fuse(tracked, covariance, last, self.motion.stamp, stamp_ns)
+        begun = self._beginning_again_on(frame, trusted, tracked is not None)
         if begun is not None:
             return begun
         held = None
         if tracked is None and trusted is None and prediction is not None:
             odometry = None if self.odometry is None or not self.odometry.as_prior else self.odometry.covariance(
-                self._hold.since or self._last_stamp, stamp_ns)
-            held = self._hold.hold(stamp_ns, self._last, self._last_stamp, prediction, tracks, xn, self.map, odometry)
+                self._hold.since or self.motion.stamp, stamp_ns)
+            held = self._hold.hold(stamp_ns, self.motion, prediction, tracks, xn, self.map, odometry)
         if trusted is None and self._beginning_again:
-            departed = self._departed(held, stamp_ns, tracks)
+            departed = self._departed(frame, held)
             if departed is not None:
                 return departed
         if trusted is not None and tracked is not None and self._anchors(trusted):
@@ -181,18 +183,19 @@ class Tracker(MapBeginning, LoopClosure):
             pose, covariance = (tracked, covariance) if tracked is not None else held
             state = PoseState.RELOCALISED if self.lost else PoseState.TRACKING
             source = PoseSource.MAP if tracked is not None else PoseSource.HELD
-            estimate = PoseEstimate(pose, state, 0, (), rms, self._drift.covariance(self._last, pose, covariance),
-                                    source)
+            estimate = PoseEstimate(pose, state, 0, (), rms, self._drift.covariance(last, pose, covariance), source)
         else:
-            self.lost, self._velocity, self._target_seen = True, None, False
+            self.lost, self._target_seen = True, False
+            self.motion.stop()
             self._hold.end()
             detail = f"{inliers} map points agree with a pose, {self.options.min_pnp_inliers} needed"
-            bridged = None if self.odometry is None or self._last is None else self.odometry.bridge(
-                self._last, self._last_stamp, self._last_covariance, stamp_ns, self.options.max_hold_s)
+            bridged = None if self.odometry is None or last is None else self.odometry.bridge(
+                last, self.motion.stamp, self.motion.covariance, stamp_ns, self.options.max_hold_s)
             if bridged is not None:  # published, and nothing else: the map waits for the camera
                 estimate = PoseEstimate(bridged[0], PoseState.TRACKING, 0, (), 0.0, bridged[1], PoseSource.ODOMETRY)
-                return TrackerOutput(FrameResult(estimate, "bridged", f"wheel odometry; {detail}"), False, drop)
-            return TrackerOutput(FrameResult(None, "lost", detail), False, drop)
+                return TrackerOutput(FrameResult(estimate, "bridged", f"wheel odometry; {detail}"), False, drop,
+                                     frame=frame)
+            return TrackerOutput(FrameResult(None, "lost", detail), False, drop, frame=frame)
 
         forced = state is PoseState.RELOCALISED
         self._target_seen = trusted is not None
@@ -203,129 +206,84 @@ class Tracker(MapBeginning, LoopClosure):
         if held is None:
             self._hold.end()
         self._hold.rebase(pose if held is None else None, tracks.ids, xn)
-        self._frame_sigma = position_sigma(trusted.covariance if trusted is not None else covariance)
-        self._last_covariance = estimate.covariance
+        sigma = position_sigma(trusted.covariance if trusted is not None else covariance)
+        self.motion.covariance = estimate.covariance
         # a visible correction is where the camera is, not how it moved, and the steps into
         # and out of a target pose too uncertain to anchor are its error: the velocity stays
-        self._after_relocalisation = self._after_relocalisation or forced
+        self.motion.after_relocalisation = self.motion.after_relocalisation or forced
         noisy = trusted is not None and not self._anchors(trusted)
-        self._update_motion(pose, stamp_ns, noisy=noisy)
+        self.motion.update(pose, stamp_ns, noisy=noisy)
         if held is None and not noisy:
-            self._measured = (pose, stamp_ns)
-        self._frame_pose = pose
+            self.motion.measured = (pose, stamp_ns)
+        frame = replace(frame, pose=pose)
         if held is not None:
             # no keyframe from a pose whose position is only held: nothing is triangulated
             # from it; fresh corners keep the rays coming
-            return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays"), True, drop)
+            return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays"), True, drop, frame=frame)
         status = "ok" if state is not PoseState.RELOCALISED else "relocalised"
         if trusted is not None and not self._anchors(trusted):
             # nor from a target pose too uncertain to anchor: each is off on its own, and points
             # triangulated between two of them are off by as much as their baseline
-            return TrackerOutput(FrameResult(estimate, status, "target pose too uncertain to map from"), True, drop)
-        want = self._maybe_keyframe(stamp_ns, pose, tracks, xn, trusted, inliers, forced)
-        return TrackerOutput(FrameResult(estimate, status), want, drop, keyframe=want)
+            return TrackerOutput(FrameResult(estimate, status, "target pose too uncertain to map from"), True, drop,
+                                 frame=frame)
+        keyframe = self._maybe_keyframe(frame, pose, sigma, trusted, inliers, forced)
+        return TrackerOutput(FrameResult(estimate, status), keyframe is not None, drop, keyframe=keyframe is not None,
+                             frame=replace(frame, keyframe=keyframe))
 
     @property
     def holding(self) -> bool:
         """The last pose came from rays and the motion model (too few map points in view)."""
         return self._hold.holding
 
-    def add_tracks(self, tracks: Tracks) -> None:
-        """Fresh corners detected in the frame just stepped (after ``want_features``)."""
+    def add_tracks(self, frame: TrackedFrame, tracks: Tracks) -> TrackedFrame:
+        """Fresh corners detected in ``frame`` (after ``want_features``): the frame with them."""
         if len(tracks.ids) == 0:
-            return
+            return frame
         xn = undistort(tracks.pixels, self.calibration)
-        pose = self._frame_pose if self._frame_pose is not None else (
-            self._frame_target.T_world_camera if self._frame_target is not None else None)
+        pose = frame.pose if frame.pose is not None else (
+            frame.target.T_world_camera if frame.target is not None else None)
         if pose is not None:
             self._hold.add(pose, tracks.ids, xn)
-        all_ids, all_xn = np.concatenate([self._frame_tracks.ids, tracks.ids]), np.concatenate([self._frame_xn, xn])
-        self._frame_tracks = Tracks(all_ids, np.concatenate([self._frame_tracks.pixels, tracks.pixels]))
-        self._frame_xn = all_xn
-        if self._frame_keyframe is not None:
-            self._frame_keyframe.add_observations(tracks.ids, xn)
-        elif (not self.initialised or self._beginning_again) and self._anchors(self._frame_target):
-            frame = InitFrame(self._frame_stamp, self._frame_target.T_world_camera, self._frame_target.planes,
-                              all_ids, all_xn)
-            if self.initialiser.try_reference(frame).status is InitStatus.REFERENCE_SET:
-                self._reference_target = self._frame_target
+        all_ids, all_xn = np.concatenate([frame.tracks.ids, tracks.ids]), np.concatenate([frame.xn, xn])
+        frame = replace(frame, tracks=Tracks(all_ids, np.concatenate([frame.tracks.pixels, tracks.pixels])),
+                        xn=all_xn)
+        if frame.keyframe is not None:
+            frame.keyframe.add_observations(tracks.ids, xn)
+        elif (not self.initialised or self._beginning_again) and self._anchors(frame.target):
+            init = InitFrame(frame.stamp_ns, frame.target.T_world_camera, frame.target.planes, all_ids, all_xn)
+            if self.initialiser.try_reference(init).status is InitStatus.REFERENCE_SET:
+                self._reference_target = frame.target
+        return frame
 
     def relocalised(self, stamp_ns: int, pose: Transform, tracks: Tracks, covariance: np.ndarray | None = None
-                    ) -> np.ndarray | None:
+                    ) -> tuple[np.ndarray | None, TrackedFrame]:
         """The caller found ``pose`` by matching this frame to the keyframes, and follows
         the matched map points again as ``tracks``. The frame becomes a keyframe, so the
         fresh corners that ``add_tracks`` brings next can be triangulated against it.
-        Returns the pose's covariance: the match's (``covariance``) plus the drift."""
+        Returns the pose's covariance (the match's, ``covariance``, plus the drift) and
+        the frame."""
         self._drift.relocalised(covariance)
         self._end_beginning_again()
-        match, covariance = covariance, self._drift.covariance(self._last, pose, covariance)
+        match, covariance = covariance, self._drift.covariance(self.motion.last, pose, covariance)
         self._hold.end()
         self.lost = False
-        # the velocity stays: a relocalisation corrects where the camera is, not how it
-        # moves (spin_on_axis, 4.5 deg a frame: without it the next frame's unguided KLT
-        # lost 3/4 of the tracks, three relocalisations in a row and then the track);
-        # unless it cannot have brought the camera here from the last pose measured
-        # (PnP would refuse this pose against its prediction): lost, the velocity is none
-        # and held steps make it a standstill, and in a spin every frame after was then
-        # found by relocalisation alone (narrow lens at 90 deg/s: 30 frames)
-        if self._measured is not None:
-            before, before_stamp = self._measured
-            dt = (stamp_ns - before_stamp) / 1e9
-            if 0.0 < dt <= self.options.max_extrapolation_s:
-                expected = before if self._velocity is None else self._extrapolated(before, dt)
-                if beyond_motion(pose, expected, self.options):
-                    self._velocity = _velocity(before, pose, dt)
-        self._measured = (pose, stamp_ns)
-        self._last, self._last_stamp, self._last_covariance = pose, stamp_ns, covariance
-        self._after_relocalisation = True
-        self._frame_pose, self._frame_stamp = pose, stamp_ns
-        self._frame_tracks, self._frame_xn = tracks, undistort(tracks.pixels, self.calibration)
-        self._frame_keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, self._frame_xn)
-        self._frame_keyframe.position_sigma_m, self._frame_keyframe.drift_m = position_sigma(match), self._drift.grown_m
+        self.motion.relocalised(pose, stamp_ns, covariance)
+        self._tracks_stamp = stamp_ns
+        xn = undistort(tracks.pixels, self.calibration)
+        keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn)
+        keyframe.position_sigma_m, keyframe.drift_m = position_sigma(match), self._drift.grown_m
         self._frames_since_keyframe, self._kf_points_at_insert = 0, len(tracks.ids)
-        return covariance
+        return covariance, TrackedFrame(stamp_ns, tracks, xn, None, pose, keyframe)
 
     @property
     def last_pose(self) -> Transform | None:
-        return self._last
+        return self.motion.last
 
     # ------------------------------------------------------------------ tracking
     def predict(self, stamp_ns: int) -> Transform | None:
-        """The pose at ``stamp_ns`` by the constant-velocity motion model (the last pose
-        when the velocity is unknown or the gap too long to extrapolate; None when lost
-        or without a pose): where tracks and the target are looked for."""
-        if self._last is None or self.lost:
-            return None
-        carried = None if self.odometry is None else self.odometry.prior(self._last, self._last_stamp, stamp_ns)
-        if carried is not None:  # the wheels' motion, where there is odometry and it is the prior
-            return carried
-        dt = (stamp_ns - self._last_stamp) / 1e9
-        if self._velocity is None or not 0.0 < dt <= self.options.max_extrapolation_s:
-            return self._last
-        return self._extrapolated(self._last, dt)
-
-    def _extrapolated(self, pose: Transform, dt: float) -> Transform:
-        """``pose`` carried ``dt`` seconds on by the velocity."""
-        rotation_per_s, translation_per_s = self._velocity
-        return pose @ Transform.from_rvec_tvec(rotation_per_s * dt, translation_per_s * dt)
-
-    def _update_motion(self, pose: Transform, stamp_ns: int, noisy: bool = False) -> None:
-        """Take ``pose`` as the last one and the step to it as the velocity, unless the
-        step is a correction or ``noisy`` (then the velocity stays, also for the next step)."""
-        dt = (stamp_ns - self._last_stamp) / 1e9
-        if self._last is None or not 0.0 < dt <= self.options.max_extrapolation_s:
-            self._velocity = None
-        elif noisy:
-            pass
-        elif self._after_relocalisation and self._velocity is not None:
-            # the step from a relocalised pose measures its correction (its match is some
-            # millimetres off), not the camera's motion: the velocity it had stays one
-            # more frame (spin_on_axis: 11.6 -> 5.3 mm RMS, blank_wall 25 -> 15 mm)
-            pass
-        else:
-            self._velocity = _velocity(self._last, pose, dt)
-        self._after_relocalisation = noisy
-        self._last, self._last_stamp = pose, stamp_ns
+        """The pose at ``stamp_ns`` by the motion model (``motion.MotionModel.predict``;
+        None when lost or without a pose): where tracks and the target are looked for."""
+        return None if self.lost else self.motion.predict(stamp_ns, self.odometry)
 
     def predict_pixels(self, stamp_ns: int, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
         """Where the tracks ``ids`` (now at ``pixels``, in the last frame with a pose) should
@@ -335,21 +293,22 @@ class Tracker(MapBeginning, LoopClosure):
         carry the features beyond KLT's reach (its pyramid follows ~80 px; a 2 deg/frame
         turn at 10 fps moves them ~60 px, twice that when a frame is skipped). Tracks with
         a map point are projected from it; the others as if at the map's median depth."""
-        if self._last_stamp != self._frame_stamp:
+        last = self.motion.last
+        if self.motion.stamp != self._tracks_stamp:
             return None  # the last pose is older than the tracks' frame (no pose there)
         prediction = self.predict(stamp_ns)
-        if prediction is None or self._velocity is None or len(ids) == 0:
+        if prediction is None or self.motion.velocity is None or len(ids) == 0:
             return None
-        T_next_last = prediction.inverse() @ self._last
+        T_next_last = prediction.inverse() @ last
         rays = np.column_stack([undistort(pixels, self.calibration), np.ones(len(ids))])
         has = np.array([int(t) in self.map.points for t in ids], dtype=bool)
         in_last = np.zeros((len(ids), 3))
         if has.any():
             world = np.array([self.map.points[int(t)] for t in ids[has]])
-            in_last[has] = self._last.inverse().apply(world)
+            in_last[has] = last.inverse().apply(world)
         depths = in_last[has, 2][in_last[has, 2] > 0]
         # without map points (initialising) the target's distance is the best guess there is
-        depth = float(np.median(depths)) if len(depths) else float(np.linalg.norm(self._last.translation))
+        depth = float(np.median(depths)) if len(depths) else float(np.linalg.norm(last.translation))
         in_last[~has] = rays[~has] * float(np.clip(depth, 0.2, 50.0))
         in_next = T_next_last.apply(in_last)
         projected = project(in_next, self.calibration)
@@ -374,9 +333,12 @@ class Tracker(MapBeginning, LoopClosure):
         return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
                 or np.degrees(a.rotation_angle_to(b)) > self.options.relocalised_jump_deg)
 
-    def _maybe_keyframe(self, stamp_ns: int, pose: Transform, tracks: Tracks, xn: np.ndarray,
-                        trusted: TargetObservation | None, inliers: int, forced: bool) -> bool:
+    def _maybe_keyframe(self, frame: TrackedFrame, pose: Transform, sigma: float, trusted: TargetObservation | None,
+                        inliers: int, forced: bool) -> Keyframe | None:
+        """The keyframe ``frame`` becomes at ``pose`` (its own position standard deviation
+        ``sigma``), with the points it triangulates; None when it is not needed."""
         o = self.options
+        tracks = frame.tracks
         self._frames_since_keyframe += 1
         last = self.map.last_keyframe
         if last is None:
@@ -393,13 +355,12 @@ class Tracker(MapBeginning, LoopClosure):
             # frame, so each new track is triangulated as soon as its parallax allows
             starving = inliers < o.keyframe_starving_points
             if not needed or (self._frames_since_keyframe < 2 and not starving):
-                return False
+                return None
         anchor = trusted if self._anchors(trusted) else None
         target_world = anchor.corners_world if anchor is not None else None
         target_xn = undistort(anchor.corners_px, self.calibration) if anchor is not None else None
-        kf = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn, target_world, target_xn)
-        kf.position_sigma_m, kf.drift_m = self._frame_sigma, self._drift.grown_m
-        self._frame_keyframe = kf
+        kf = self.map.add_keyframe(frame.stamp_ns, pose, tracks.ids, frame.xn, target_world, target_xn)
+        kf.position_sigma_m, kf.drift_m = sigma, self._drift.grown_m
         self._frames_since_keyframe = 0
         self.map.triangulate(kf, self.fx, o.triangulation_starving_parallax_deg
                              if inliers < o.triangulation_starving_points else o.triangulation_min_parallax_deg,
@@ -411,7 +372,7 @@ class Tracker(MapBeginning, LoopClosure):
         else:
             self.map.cull(o.max_keyframes, live)
         self._schedule_bundle()
-        return True
+        return kf
 
     # ------------------------------------------------------------------ bundle adjustment
     def _schedule_bundle(self) -> None:
@@ -458,10 +419,3 @@ class Tracker(MapBeginning, LoopClosure):
         self.bundle_runs = [*self.bundle_runs[-19:], replace(solution, points=np.zeros((0, 3)))]
         log.debug("tracker.bundle", applied=applied, seconds=round(solution.seconds, 3),
                   rms_before=round(solution.initial_rms_px, 3), rms_after=round(solution.final_rms_px, 3))
-
-
-def _velocity(a: Transform, b: Transform, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """The camera's motion per second from ``a`` to ``b``, ``dt`` seconds apart (rotation vector
-    and translation of T_a_b, in a's frame)."""
-    step = a.inverse() @ b
-    return step.rvec() / dt, step.translation / dt

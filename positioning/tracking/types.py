@@ -9,6 +9,7 @@ import numpy as np
 from positioning.estimator import FrameResult
 from positioning.geometry import Transform
 from positioning.tracking.initialiser import InitStatus
+from positioning.tracking.map import Keyframe
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,20 @@ class TargetObservation:
 
 
 @dataclass(frozen=True)
+class TrackedFrame:
+    """One frame on its way through the tracker: what came in, and what the tracker made
+    of it. ``Tracker.step`` returns it (``TrackerOutput.frame``); ``add_tracks``,
+    ``relocalised`` and ``close_loop`` take it and return it as they leave it."""
+
+    stamp_ns: int
+    tracks: Tracks  # every track of the frame, the fresh corners added to it included
+    xn: np.ndarray  # (N, 2) the tracks' normalised (undistorted) coordinates
+    target: TargetObservation | None  # the target as observed in it (trusted or not)
+    pose: Transform | None = None  # the tracker's pose of it (None: no pose, or the target's alone)
+    keyframe: Keyframe | None = None  # the keyframe it became
+
+
+@dataclass(frozen=True)
 class TrackerOutput:
     """The frame's result, and what the tracker asks of the feature front end."""
 
@@ -56,3 +71,4 @@ class TrackerOutput:
     drop_ids: np.ndarray  # (K,) tracks rejected as outliers: stop following them
     init_status: InitStatus | None = None  # while initialising: why not yet
     keyframe: bool = False
+    frame: TrackedFrame | None = None  # always set by Tracker.step: what add_tracks takes next
