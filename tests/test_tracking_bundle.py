@@ -117,6 +117,39 @@ def test_the_drift_grows_with_the_path_at_the_scale_bundle_adjustment_measured()
     assert drift.scale_var == 0.0 and drift.scaled_m == 0.0
 
 
+def test_a_map_is_no_surer_of_its_scale_than_its_best_pair_of_anchored_keyframes():
+    """``Map.anchored_scale_var``: two target poses a baseline apart, each unsure by its
+    own covariance along it, fix the scale to that over the baseline; the best pair
+    counts, keyframes without the target (or a covariance) do not. A window held by the
+    target claims no surer a scale (``Drift.scale_measured``): a map begun on 3 cm
+    between poses 6 and 7.7 mm unsure (the family's seed 2) has it to ~30 %, where its
+    window's points said 0.5 %."""
+    world_map = Map()
+
+    def keyframe(x: float, sigmas: tuple[float, float, float] | None, anchored: bool = True):
+        kf = world_map.add_keyframe(0, Transform(np.eye(3), np.array([x, 0.0, 0.0])), np.zeros(0, np.int64),
+                                    np.zeros((0, 2)), np.ones((4, 3)) if anchored else None,
+                                    np.ones((4, 2)) if anchored else None)
+        kf.anchor_covariance = None if sigmas is None else np.diag(np.square(sigmas))
+        return kf
+
+    keyframe(0.0, (0.006, 0.05, 0.05))  # unsure across the baseline: that does not count
+    assert world_map.anchored_scale_var() == 0.0  # one anchor fixes no scale
+    keyframe(0.032, (0.0077, 0.05, 0.05))
+    assert np.sqrt(world_map.anchored_scale_var()) == pytest.approx(np.hypot(0.006, 0.0077) / 0.032)
+    keyframe(1.0, None)  # anchored, no covariance: not counted
+    keyframe(2.0, (0.001, 0.001, 0.001), anchored=False)  # not anchored: not counted
+    assert np.sqrt(world_map.anchored_scale_var()) == pytest.approx(np.hypot(0.006, 0.0077) / 0.032)
+    keyframe(0.5, (0.002, 0.05, 0.05))  # 0.5 m from the first: the best pair now
+    best = world_map.anchored_scale_var()
+    assert np.sqrt(best) == pytest.approx(np.hypot(0.006, 0.002) / 0.5)
+    drift = Drift(TrackerOptions())
+    drift.scale_measured(0.005**2, 1.0, held_by_target=True, anchored_var=best)
+    assert drift.scale_var == pytest.approx(best)
+    drift.scale_measured(0.05**2, 1.0, held_by_target=True, anchored_var=best)  # the window less sure: its own
+    assert drift.scale_var == pytest.approx(0.05**2)
+
+
 def test_a_loop_closed_onto_a_surer_keyframe_rewinds_the_drift_to_its():
     """Drift.rewind: path, turn and scale walk shrink alike until the growth is the
     reference keyframe's, so the position's standard deviation comes down with it; a

@@ -130,6 +130,7 @@ class MapBeginning:
                                      ta.corners_world, undistort(ta.corners_px, self.calibration))
         kf_b = self.map.add_keyframe(b.stamp_ns, b.T_world_camera, b.track_ids, b.xn,
                                      target_b.corners_world, undistort(target_b.corners_px, self.calibration))
+        kf_a.anchor_covariance, kf_b.anchor_covariance = ta.position_covariance, target_b.position_covariance
         for track_id, point in zip(result.track_ids, result.points_world, strict=True):
             self.map.add_point(int(track_id), point, kf_a.kf_id)
         self.initialised, self.lost = True, False

@@ -151,15 +151,19 @@ class Drift:
         measure of drift ``Map.correct`` spreads a correction by."""
         return self.options.drift_per_m * self.path_m + self.options.drift_m_per_rad * self.turned_rad
 
-    def scale_measured(self, window_var: float, renewed: float, held_by_target: bool) -> None:
+    def scale_measured(self, window_var: float, renewed: float, held_by_target: bool, anchored_var: float = 0.0
+                       ) -> None:
         """A bundle adjustment's relative scale variance across its window
-        (``bundle._scale_var``). Held by the target, the window's scale is the map's. Held
+        (``bundle._scale_var``). Held by the target, the window's scale is the map's, and no
+        surer than the anchored keyframes fix it (``anchored_var``,
+        ``Map.anchored_scale_var``: a map begun on a 3 cm baseline between two target poses
+        6-8 mm unsure has its scale to ~20 %, whatever the window's points say). Held
         by keyframes, the scale walks on as the points that carry it are replaced: by the
         window's variance for a window of points all new, by the ``renewed`` share of it
         for one whose points are partly new since the last (a turn on the spot, a keyframe
         every frame, renews few and walks little)."""
         if held_by_target:
-            self.scale_var = window_var
+            self.scale_var = max(window_var, anchored_var)
         else:
             self.scale_var += window_var * min(max(renewed, 0.0), 1.0)
 

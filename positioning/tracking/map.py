@@ -37,6 +37,9 @@ class Keyframe:
     position_sigma_m: float = 0.0  # its pose's own (target, PnP or match), not the drift
     drift_m: float = 0.0  # the drift's growth since the target when it was made (Drift.grown_m)
     loop_moved: bool = False  # moved by a loop closure's spread (Map.correct with after_ns): no reference
+    # anchored: the target pose's own position covariance (3, 3), how sure its place in the
+    # target's frame is (Map.anchored_scale_var)
+    anchor_covariance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self._index = {int(t): i for i, t in enumerate(self.track_ids)}
@@ -100,6 +103,25 @@ class Map:
         self.keyframes[kf.kf_id] = kf
         self.next_kf_id += 1
         return kf
+
+    def anchored_scale_var(self) -> float:
+        """The variance of the map's relative scale as its anchored keyframes fix it, no
+        better than their best pair: two target poses a baseline b apart, each off by its
+        own covariance along b, give the scale to (b^T (C_i + C_j) b) / |b|^4. (A fit to all
+        of them is surer than its best pair, so this errs on the safe side.) 0 without two
+        anchored keyframes with a covariance."""
+        anchors = [kf for kf in self.keyframes.values() if kf.anchored and kf.anchor_covariance is not None]
+        if len(anchors) < 2:
+            return 0.0
+        positions = np.array([kf.T_world_camera.translation for kf in anchors])
+        covariances = np.array([kf.anchor_covariance for kf in anchors])
+        baselines = positions[None, :, :] - positions[:, None, :]  # (n, n, 3): j's position less i's
+        along = np.einsum("ijk,ikl,ijl->ij", baselines, covariances, baselines)  # b^T C_i b
+        squared = np.einsum("ijk,ijk->ij", baselines, baselines)
+        upper = np.triu(squared > 0.0, k=1)
+        if not upper.any():
+            return 0.0
+        return float(np.min((along + along.T)[upper] / squared[upper] ** 2))
 
     def add_point(self, track_id: int, position: np.ndarray, birth_kf: int) -> None:
         self.points[int(track_id)] = np.asarray(position, np.float64).reshape(3).copy()

@@ -361,6 +361,7 @@ class Tracker(MapBeginning, LoopClosure):
         target_xn = undistort(anchor.corners_px, self.calibration) if anchor is not None else None
         kf = self.map.add_keyframe(frame.stamp_ns, pose, tracks.ids, frame.xn, target_world, target_xn)
         kf.position_sigma_m, kf.drift_m = sigma, self._drift.grown_m
+        kf.anchor_covariance = anchor.position_covariance if anchor is not None else None
         self._frames_since_keyframe = 0
         self.map.triangulate(kf, self.fx, o.triangulation_starving_parallax_deg
                              if inliers < o.triangulation_starving_points else o.triangulation_min_parallax_deg,
@@ -415,7 +416,8 @@ class Tracker(MapBeginning, LoopClosure):
             # the share of the window's points added since the last solution measured the scale
             renewed = (solution.points_added - self._scale_points_added) / max(len(solution.point_ids), 1)
             self._scale_points_added = solution.points_added
-            self._drift.scale_measured(solution.scale_var, renewed, solution.held_by_target)
+            anchored = self.map.anchored_scale_var() if solution.held_by_target else 0.0
+            self._drift.scale_measured(solution.scale_var, renewed, solution.held_by_target, anchored)
         self.bundle_runs = [*self.bundle_runs[-19:], replace(solution, points=np.zeros((0, 3)))]
         log.debug("tracker.bundle", applied=applied, seconds=round(solution.seconds, 3),
                   rms_before=round(solution.initial_rms_px, 3), rms_after=round(solution.final_rms_px, 3))

@@ -41,6 +41,11 @@ class TargetObservation:
     systematic: np.ndarray | None = None
 
     @property
+    def position_covariance(self) -> np.ndarray | None:
+        """This frame's own position covariance (3, 3), None without one."""
+        return None if self.covariance is None else np.asarray(self.covariance)[:3, :3].copy()
+
+    @property
     def published_covariance(self) -> np.ndarray | None:
         """What the pose's error against the truth may be: the two shares together."""
         if self.covariance is None or self.systematic is None:
