@@ -1,7 +1,10 @@
 """The daemon, wired: capture thread -> newest-frame slot -> processing loop -> Zenoh.
 
-Three threads: capture (daemon/capture.py), processing (the caller's thread,
-daemon/pipeline.py) and status (here, once a second). ``stop`` is the only way to end
+Three threads of its own: capture (daemon/capture.py), processing (the caller's thread,
+daemon/pipeline.py) and status (here, once a second). Others come with what is switched
+on: the tracker's bundle adjustment worker (``cubeloc-ba``), the Foxglove server
+(``foxglove``, daemon/viewer.py), a map being saved (``map-save``, daemon/map_store.py),
+Aravis' buffer release (``aravis-release``), and Zenoh's own. ``stop`` is the only way to end
 it; signal handlers (daemon/commands/run.py) only set it. ``reload`` (SIGHUP, systemctl
 reload) makes the status thread read the calibration and target files again, check them
 and hand the loop a processor built on them between two frames; a file that does not

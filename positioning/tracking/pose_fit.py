@@ -23,7 +23,8 @@ SYNOPSIS
     >>> rng = np.random.default_rng(0)
     >>> points = rng.uniform([-2, -2, 3], [2, 2, 6], (40, 3))          # world = camera frame
     >>> truth = Transform.from_rvec_tvec(np.array([0.0, 0.05, 0.0]), np.array([0.02, 0, 0]))
-    >>> xn = project(truth.inverse(), points)
+    >>> from positioning.camera_model import project_normalised
+    >>> xn = project_normalised(truth.inverse(), points)[0]
     >>> fit = fit_pose(Transform.identity(), points, xn, None, fx=1000.0, sigma_px=0.2)
     >>> bool(np.allclose(fit.T_world_camera.matrix(), truth.matrix(), atol=1e-6)), fit.covariance.shape
     (True, (6, 6))
