@@ -30,12 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from positioning.geometry import Transform
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+from positioning.geometry import Transform, skew
 
 
 def reframe_covariance(covariance: np.ndarray, T_parent_child: Transform, T_child_new: Transform,
@@ -46,7 +41,7 @@ def reframe_covariance(covariance: np.ndarray, T_parent_child: Transform, T_chil
     lever = T_parent_child.rotation @ T_child_new.translation  # child -> new child, in the parent frame
     # p_new = p + R t  =>  dp_new = dp + dtheta x (R t) = dp - [R t]x dtheta; dtheta_new = dtheta
     mount = np.eye(6)
-    mount[:3, 3:] = -_skew(lever)
+    mount[:3, 3:] = -skew(lever)
     rotate = np.zeros((6, 6))
     rotate[:3, :3] = rotate[3:, 3:] = T_newparent_parent.rotation
     jacobian = rotate @ mount

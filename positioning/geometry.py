@@ -82,6 +82,22 @@ class Transform:
         return float(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)))
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """The cross-product matrix [v]x of a 3-vector (3, 3), or of each of (N, 3) vectors (N, 3, 3):
+    ``skew(a) @ b == np.cross(a, b)``.
+
+    >>> skew([1.0, 2.0, 3.0]) @ [4.0, 5.0, 6.0]
+    array([-3.,  6., -3.])
+    >>> skew(np.zeros((5, 3))).shape
+    (5, 3, 3)
+    """
+    v = np.asarray(v, np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return out
+
+
 def canonical_quaternion(q: np.ndarray) -> np.ndarray:
     """Normalise and flip the sign so that ``w >= 0`` (the published convention)."""
     q = np.asarray(q, dtype=np.float64).reshape(4)

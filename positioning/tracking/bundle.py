@@ -41,7 +41,7 @@ from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
-from positioning.geometry import Transform
+from positioning.geometry import Transform, skew
 from positioning.tracking import schur_lm
 from positioning.tracking.map import Map
 from positioning.tracking.options import BundleOptions
@@ -383,22 +383,15 @@ def _projection_jacobian(pc: np.ndarray, scale: float) -> np.ndarray:
 def _pose_block(d_pc: np.ndarray, rotated: np.ndarray, left: np.ndarray) -> np.ndarray:
     """(N, 2, 6) for the pose update (R = exp(w) R0, t = t0 + dt): d pc = -[R p]x J_l(w) dw + dt."""
     out = np.empty((len(d_pc), 2, 6))
-    out[:, :, :3] = -(d_pc @ _skew(rotated) @ left)
+    out[:, :, :3] = -(d_pc @ skew(rotated) @ left)
     out[:, :, 3:] = d_pc
-    return out
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
     return out
 
 
 def _so3_left_jacobian(w: np.ndarray) -> np.ndarray:
     """(N, 3, 3): exp(w + d) = exp(J_l(w) d) exp(w) to first order in d."""
     theta = np.linalg.norm(w, axis=1)
-    k = _skew(w)
+    k = skew(w)
     small = theta < 1e-6
     t = np.where(small, 1.0, theta)
     a = np.where(small, 0.5, (1 - np.cos(t)) / t**2)

@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from positioning.camera_model import project_normalised
-from positioning.geometry import Transform
+from positioning.geometry import Transform, skew
 
 if TYPE_CHECKING:
     from positioning.tracking.map import Map
@@ -184,14 +184,6 @@ class PoseFit:
     rms_px: float  # RMS reprojection error of the map-point inliers, pixels
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) cross-product matrices of (N, 3) vectors."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
-
-
 def _projection(camera: np.ndarray, fx: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normalised projections (N, 2) of camera-frame points (N, 3), the Jacobians of their
     pixels (N, 2, 3) and the depths (N,) (clamped away from zero for the division)."""
@@ -209,7 +201,7 @@ def _blocks(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray, x
     ``R <- exp(d_omega) R, t <- t + d_t`` (camera from world) and depths (N,)."""
     rotated = points @ rotation.T
     projected, proj, z = _projection(rotated + translation, fx)
-    jac = np.concatenate([proj @ -_skew(rotated), proj], axis=2)
+    jac = np.concatenate([proj @ -skew(rotated), proj], axis=2)
     return (projected - xn) * fx, jac, z
 
 
@@ -232,7 +224,7 @@ def _ray_blocks(R: np.ndarray, t: np.ndarray, rays: Rays, fx: float, sigma_px: f
     along_gain = 1.0 / np.sqrt(sigma_px**2 + norm2) - 1.0 / sigma_px
     whiten = np.eye(2)[None] / sigma_px + along_gain[:, None, None] * unit[:, :, None] * unit[:, None, :]
     jac = np.zeros((len(z), 2, 6))
-    jac[:, :, :3] = proj @ -_skew(d_cam)
+    jac[:, :, :3] = proj @ -skew(d_cam)
     return np.einsum("kij,kj->ki", whiten, residual), whiten @ jac, z
 
 
@@ -276,7 +268,7 @@ def fit_pose(start: Transform, points_world: np.ndarray, points_xn: np.ndarray, 
             mean, sigma_m = prior_position
             c = -R.T @ t
             rows.append((c - mean) / sigma_m)
-            jacs.append(np.hstack([-R.T @ _skew(t[None])[0], -R.T]) / sigma_m)
+            jacs.append(np.hstack([-R.T @ skew(t), -R.T]) / sigma_m)
         if not rows:
             return None
         jac = np.concatenate(jacs)
@@ -292,7 +284,7 @@ def fit_pose(start: Transform, points_world: np.ndarray, points_xn: np.ndarray, 
     cov_solver = np.linalg.inv(normal)
     # (d_omega, d_t) -> (camera centre, rotation about world axes)
     g = np.zeros((6, 6))
-    g[:3, :3] = -R.T @ _skew(t[None])[0]
+    g[:3, :3] = -R.T @ skew(t)
     g[:3, 3:] = -R.T
     g[3:, :3] = -R.T
     cov = g @ cov_solver @ g.T
