@@ -11,7 +11,6 @@ connected over loopback TCP notes when each pose arrives: latency = arrival - st
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import tempfile
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import markdown_table
+from cubeloc.net import free_port
 
 TITLE = "End to end: capture -> subscriber latency and sustained frame rate (1280x1024)"
 
@@ -94,12 +94,6 @@ def render_frames() -> list[np.ndarray]:
 
     trajectory = make_trajectory("orbit", seconds=FRAMES / 10.0, fps=10.0)
     return [render_view(p.T_world_camera, seed=i, noise_sigma=2.0) for i, p in enumerate(trajectory)]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_daemon(images: list[np.ndarray], rate_hz: float, workdir: Path, **sections):

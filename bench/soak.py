@@ -33,7 +33,6 @@ import json
 import math
 import os
 import resource
-import socket
 import statistics
 import sys
 import tempfile
@@ -43,6 +42,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from cubeloc.net import free_port
 
 SOAK_DOC = Path(__file__).resolve().parents[1] / "docs" / "soak.md"
 WRONG_POSITION_M = 0.02
@@ -97,12 +98,6 @@ def process_sample(t_s: float, frames: int, poses: int) -> Sample:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return Sample(t_s, _proc_status_kb("VmRSS"), len(os.listdir("/proc/self/task")),
                   len(os.listdir("/proc/self/fd")), frames, poses, usage.ru_utime + usage.ru_stime)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class PoseChecker:

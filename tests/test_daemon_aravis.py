@@ -15,9 +15,10 @@ from pathlib import Path
 
 import pytest
 from gv_fake import FAKE_GV_CAMERA, GvFake
-from helpers import free_port, wait_until
+from helpers import wait_until
 
 from calib.camera_info import paper_camera, write_camera_info
+from cubeloc.net import free_port
 from positioning.target import default_cube_yaml
 
 REPO = Path(__file__).resolve().parents[1]

@@ -15,9 +15,10 @@ import threading
 from pathlib import Path
 
 import numpy as np
-from helpers import free_port, wait_until
+from helpers import wait_until
 
 from calib.camera_info import paper_camera, write_camera_info
+from cubeloc.net import free_port
 from fakes.trajectories import make_trajectory
 from positioning.target import default_cube_yaml
 

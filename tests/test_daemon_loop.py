@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from helpers import ROUTER, end_process, free_port, helper_process, wait_until
+from helpers import ROUTER, end_process, helper_process, wait_until
 from ros2_msgs import decode
 
 from calib.camera_info import paper_camera, write_camera_info
+from cubeloc.net import free_port
 from daemon.config import Config
 from daemon.preflight import prepare
 from daemon.sdnotify import SystemdNotifier

@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 import pytest
-from helpers import free_port
 from test_daemon_loop import Script, make_prepared, start_daemon
 
+from cubeloc.net import free_port
 from daemon.ros2 import typestore
 from fakes import render_view
 from positioning.geometry import look_at

@@ -8,9 +8,10 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-from helpers import free_port, half_resolution
+from helpers import half_resolution
 
 from calib.camera_info import write_camera_info
+from cubeloc.net import free_port
 from daemon.cameras import make_camera
 from daemon.config import Config
 from daemon.preflight import prepare

@@ -17,9 +17,9 @@ import pytest
 import structlog
 import zenoh
 from gv_fake import FAKE_GV_CAMERA, GvFake, gvcp_listening
-from helpers import free_port
 
 from calib.camera_info import CameraCalibration, write_camera_info
+from cubeloc.net import free_port
 from daemon.cli import main
 from daemon.commands.doctor import FAIL, OK, WARN, packet_size_verdict
 from drivers.ownership import CameraLock

@@ -9,8 +9,8 @@ import time
 
 import numpy as np
 import pytest
-from helpers import free_port
 
+from cubeloc.net import free_port
 from daemon.messages import CameraStatus, StatusReport, pose_message, status_message
 from daemon.publisher import ZenohPublisher
 from positioning.estimator import PoseEstimate, PoseState

@@ -15,7 +15,8 @@ import threading
 import pytest
 from helpers import wait_until
 
-from bench.soak import free_port, make_prepared
+from bench.soak import make_prepared
+from cubeloc.net import free_port
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
 from drivers.aravis_camera import AravisCamera

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import structlog
 
-from bench.soak import free_port, make_prepared, quaternion_angle_deg
+from bench.soak import make_prepared, quaternion_angle_deg
+from cubeloc.net import free_port
 from daemon.capture import STAMP_RESTART_FRAMES
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon

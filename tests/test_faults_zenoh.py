@@ -18,7 +18,8 @@ import pytest
 import structlog
 from helpers import ROUTER, end_process, helper_process, wait_until
 
-from bench.soak import free_port, make_prepared
+from bench.soak import make_prepared
+from cubeloc.net import free_port
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
 from fakes.faulty import CyclingCamera, FaultyCamera, orbit_frames

@@ -21,12 +21,13 @@ import cv2
 import numpy as np
 import pytest
 from foxglove_client import FoxgloveClient
-from helpers import free_port, half_resolution, wait_until
+from helpers import half_resolution, wait_until
 from mcap.exceptions import EndOfFile
 from mcap.reader import NonSeekingReader, make_reader
 from test_daemon_loop import CAMERA_POSITION, Script, make_prepared, start_daemon
 
 from calib.camera_info import write_camera_info
+from cubeloc.net import free_port
 from daemon.config import FoxgloveConfig
 from daemon.frame_queue import CapturedFrame
 from daemon.viewer import LiveViewer

@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 import yaml
 from helpers import Listener
-from test_daemon_loop import CAMERA_POSITION, Script, free_port, make_prepared, start_daemon
+from test_daemon_loop import CAMERA_POSITION, Script, make_prepared, start_daemon
 
+from cubeloc.net import free_port
 from fakes import render_view
 from positioning.geometry import look_at
 

@@ -306,8 +306,9 @@ def _daemon(sequence: Path, map_file: Path, port: int, **map_section):
 
 
 def test_the_daemon_saves_its_map_and_boots_on_it_without_the_cube(mapped, tmp_path, listeners):
-    from helpers import free_port, wait_until
+    from helpers import wait_until
 
+    from cubeloc.net import free_port
     from drivers.sequence import SequenceWriter
     from positioning.tracking.map_file import read_header
 
@@ -355,7 +356,9 @@ def test_a_reload_keeps_the_map_made_since_the_last_save(mapped, tmp_path):
     """SIGHUP with the same calibration and target: the map in memory is saved at the swap
     and the reloaded processor starts from it (before, it started from the file as it was:
     here none yet, so everything mapped before the reload was gone)."""
-    from helpers import free_port, wait_until
+    from helpers import wait_until
+
+    from cubeloc.net import free_port
 
     _, orbit = mapped
     map_file = tmp_path / "robot.map"

@@ -205,8 +205,8 @@ def test_record_with_odometry_keeps_what_the_robot_sends_as_it_arrived(cli, tmp_
     import json
 
     import zenoh
-    from helpers import free_port
 
+    from cubeloc.net import free_port
     from daemon.odometry_in import read_odometry_file
 
     source = tmp_path / "source"

@@ -16,6 +16,8 @@ import threading
 import time
 from pathlib import Path
 
+from cubeloc.net import free_port
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -30,14 +32,6 @@ def register(subparsers) -> None:
                         help="positioning.mode: the tracker (default) or the single-frame target pose")
     parser.add_argument("--quiet", action="store_true", help="only the summary, not one line per pose")
     parser.set_defaults(func=run)
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class _RecordingFactory:
@@ -82,7 +76,7 @@ def run(args) -> int:
         raise ConfigError(f"--seconds {args.seconds:g} must be in (0, 600] and --fps {args.fps:g} in (0, 100]")
     # stdout is for the poses and the summary; the daemon's own logs: warnings, on stderr.
     configure_logging("warning", "console", stream=sys.stderr)
-    port = args.port or _free_port()
+    port = args.port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory(prefix="cubeloc-demo-") as tmp:
         write_camera_info(Path(tmp) / "camera.yaml", paper_camera())
