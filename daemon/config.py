@@ -295,7 +295,7 @@ class OdometryConfig(Section):
 
     enabled: bool = False
     # ros2: nav_msgs/msg/Odometry in CDR on rmw_zenoh's key for [ros2] domain_id + topic;
-    # json: cubeloc.odometry/1 documents on cubeloc/<name>/odometry (README)
+    # json: cubeloc.odometry/1 documents on cubeloc/<name>/odometry (docs/robot.md)
     source: Literal["ros2", "json"] = "ros2"
     topic: str = Field("odom", description="the ROS 2 topic, relative to [ros2] namespace unless absolute")
     # as_prior (default): the bridge, and the tracker's motion prior, held position and a

@@ -26,7 +26,7 @@ The payload (JSON, schema ``cubeloc.pose/3``)::
      "covariance": [36 numbers], "latency_ns": 31250000}
 
 ``source`` says what measured the pose (target, map, held, odometry, relocalised: the
-README's "Zenoh" section); this example reads only the fields every schema version has.
+README's "Reading a pose"); this example reads only the fields every schema version has.
 """
 
 import argparse

@@ -10,7 +10,7 @@ mrad a sample (encoder steps: 3 mm over 20 s at 50 Hz); integrated from the iden
 the robot's own ``odom`` frame, at ``rate_hz`` (50) on its own clock phase, each sample
 arriving ``latency_s`` after its stamp.
 
-Rows are the ``cubeloc.odometry/1`` JSON of the README, plus ``arrival_ns`` (when the
+Rows are the ``cubeloc.odometry/1`` JSON of docs/robot.md, plus ``arrival_ns`` (when the
 sample reached the daemon), one per line: what ``cubeloc track --odometry`` replays.
 """
 

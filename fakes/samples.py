@@ -1,4 +1,4 @@
-"""Write the sample frames shown in the README: ``python -m fakes.samples [DIR]``.
+"""Write the sample frames shown in docs/synthetic.md: ``python -m fakes.samples [DIR]``.
 
 One frame per trajectory (default directory ``docs/samples``), downscaled to 640x512.
 """

@@ -3,7 +3,7 @@
 A technician builds the cube the target file describes from these: one page per face at
 true physical scale (the tag, its id, which edge is up, cut marks, a 100 mm check bar),
 and, when the whole cube fits on an A3 sheet, its unfolded net with fold lines. The
-``cubeloc generate cube`` verb writes them; the README shows the layout picture.
+``cubeloc generate cube`` verb writes them; docs/target.md shows the layout picture.
 
 Tags are drawn from OpenCV's AprilTag dictionaries, cell by cell: ``generateImageMarker``
 is the definition of "upright" and of the corner order in interfaces.md.
@@ -210,7 +210,7 @@ def _arrow(draw: ImageDraw.ImageDraw, start, end, colour, width: int) -> None:
 
 
 def cube_layout_picture(target: Target, face_px: int = 220) -> Image.Image:
-    """The unfolded cube for the README: ids, face names, which way is up, world axes and
+    """The unfolded cube for docs/target.md: ids, face names, which way is up, world axes and
     the origin, drawn from the same tags the printer gets."""
     cube = target.cube
     if cube is None:

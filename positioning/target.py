@@ -12,7 +12,7 @@ or the cube shorthand::
     family: tag36h11
     cube: {side: 0.18, tag_size: 0.144, ids: [0, 1, 2, 3, 4, 5]}
 
-Cube layout (the README has a picture): the world origin is the cube centre, z up (the
+Cube layout (docs/target.md has a picture): the world origin is the cube centre, z up (the
 cube stands on its ``-z`` face), and ``ids`` are the tags on the faces
 ``+x, +y, -x, -y, +z (top), -z (bottom)`` in that order. Side faces are printed upright
 (tag "up" = world +z). Unfolded, the four side faces form a strip ``+x, +y, -x, -y`` from

@@ -38,7 +38,7 @@ def run(args) -> int:
         return 0
     if not found.devices:
         print("no cameras found (GigE Vision: same subnet and powered? USB: plugged in and "
-              "permitted? see 'USB permissions' in the README)")
+              "permitted? see 'USB permissions' in docs/cameras.md)")
         return 0
     for device in found.devices:
         source = device.device_id or "(not openable)"

@@ -175,7 +175,7 @@ def run(args) -> int:
         for reason, count in stats.dropped.items():
             states[f"odometry dropped ({reason})"] = count
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
-    if sources:  # what measured the poses (README, "Zenoh": the pose's source)
+    if sources:  # what measured the poses (README, "Reading a pose": the pose's source)
         summary += "; poses from " + ", ".join(f"{name} {count}" for name, count in sources.most_common())
     tracker = processor.tracker
     if tracker.loops_closed or tracker.loops_refused:
