@@ -264,7 +264,7 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
                 if estimate.covariance is not None:
                     sigma = f"{1000 * np.sqrt(np.trace(estimate.covariance[:3, :3])):.1f}"
             ids = processor.front_end.ids
-            mapped = sum(1 for t in ids if int(t) in tracker.map.points)
+            mapped = int(tracker.map.mapped(ids).sum())
             print(f"{i} {result.status} [{result.detail[:48]}] err {error} sigma {sigma} kf {len(tracker.map.keyframes)} "
                   f"points {len(tracker.map.points)} tracks {len(ids)} mapped {mapped} textured {textured[i]:.2f}",
                   flush=True)

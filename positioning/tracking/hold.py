@@ -80,7 +80,7 @@ class RayHold:
         held_s = (stamp_ns - self.since) / 1e9
         if held_s > o.max_hold_s:
             return None
-        has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
+        has = world_map.mapped(tracks.ids)
         born = np.array([not h and int(t) in self.rays for t, h in zip(tracks.ids, has, strict=True)], bool)
         if born.sum() < o.min_hold_rays:
             return motion.coast(prediction, held_s)

@@ -104,6 +104,10 @@ class Map:
         self.next_kf_id += 1
         return kf
 
+    def mapped(self, track_ids: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of these tracks have a point in the map."""
+        return np.fromiter((int(t) in self.points for t in track_ids), bool, len(track_ids))
+
     def anchored_scale_var(self) -> float:
         """The variance of the map's relative scale as its anchored keyframes fix it, no
         better than their best pair: two target poses a baseline b apart, each off by its

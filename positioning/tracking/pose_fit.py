@@ -93,7 +93,7 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
     re-selected by its deleted residual, ``deleted_residuals``), refused beyond
     ``max_motion_*`` from ``prediction``. Returns (pose or None, inliers, outlier
     ids, RMS px, 6x6 covariance from the inliers' reprojection errors)."""
-    has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
+    has = world_map.mapped(tracks.ids)
     reference = has & world_map.is_reference(tracks.ids)  # a loaded map's: they alone when enough
     has = reference if reference.sum() >= o.min_reference_points else has
     ids = tracks.ids[has]
@@ -150,7 +150,7 @@ def pose_from_target_and_map(world_map: Map, corners_world: np.ndarray, corners_
     map points within ``max_reproj_px`` of it: the map, anchored on many target frames by
     bundle adjustment, averages out the corner noise of a single frame. None when the
     refinement gives no finite pose."""
-    has = np.array([int(t) in world_map.points for t in tracks.ids], dtype=bool)
+    has = world_map.mapped(tracks.ids)
     obj = np.concatenate([corners_world, np.array([world_map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)])
     img = np.concatenate([corners_xn, xn[has]])
     T_c_w = start.inverse()

@@ -217,8 +217,7 @@ class TrackingProcessor:
     def _view(self, outlines: tuple, tracks: Tracks, out: TrackerOutput) -> FrameView:
         """The frame for a viewer: the tags decoded, the features followed into it by state."""
         states = np.full(len(tracks.ids), FeatureState.CANDIDATE, np.uint8)
-        points = self.tracker.map.points
-        states[np.fromiter((int(t) in points for t in tracks.ids), bool, len(tracks.ids))] = FeatureState.MAPPED
+        states[self.tracker.map.mapped(tracks.ids)] = FeatureState.MAPPED
         states[np.isin(tracks.ids, out.drop_ids)] = FeatureState.OUTLIER
         return FrameView(outlines, tracks.pixels, states)
 

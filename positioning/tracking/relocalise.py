@@ -61,7 +61,7 @@ class Relocaliser:
     def describe(self, image: np.ndarray, keyframe: Keyframe, world_map: Map, ids: np.ndarray,
                  pixels: np.ndarray) -> None:
         """Store on ``keyframe`` the ORB descriptors of its tracks that have map points."""
-        has = np.array([int(t) in world_map.points for t in ids], dtype=bool)
+        has = world_map.mapped(ids)
         if not has.any():
             return
         keypoints, descriptors = self._describe(image, pixels[has], np.flatnonzero(has))
@@ -90,7 +90,7 @@ class Relocaliser:
         corners described)."""
         o = self.options
         reference = self._reference(world_map)
-        alive = np.fromiter((int(i) in world_map.points for i in reference[0]), bool)  # not retired
+        alive = world_map.mapped(reference[0])  # not retired
         ids, points, centres, descriptors = (a[alive] for a in reference)
         none = Refound(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0, np.int64))
         if not len(ids):

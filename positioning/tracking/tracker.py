@@ -301,7 +301,7 @@ class Tracker(MapBeginning, LoopClosure):
             return None
         T_next_last = prediction.inverse() @ last
         rays = np.column_stack([undistort(pixels, self.calibration), np.ones(len(ids))])
-        has = np.array([int(t) in self.map.points for t in ids], dtype=bool)
+        has = self.map.mapped(ids)
         in_last = np.zeros((len(ids), 3))
         if has.any():
             world = np.array([self.map.points[int(t)] for t in ids[has]])
@@ -366,7 +366,7 @@ class Tracker(MapBeginning, LoopClosure):
         self.map.triangulate(kf, self.fx, o.triangulation_starving_parallax_deg
                              if inliers < o.triangulation_starving_points else o.triangulation_min_parallax_deg,
                              o.triangulation_max_reproj_px, o.triangulation_min_baseline_sigmas)
-        self._kf_points_at_insert = sum(1 for t in kf.track_ids if int(t) in self.map.points)
+        self._kf_points_at_insert = int(self.map.mapped(kf.track_ids).sum())
         live = {int(t) for t in tracks.ids}
         if o.loop_closure:  # places left behind stay, a few, for a loop to close on
             self.map.thin(o.max_keyframes + o.loop_kept_keyframes, o.max_keyframes, live, keep_fixed=True)
