@@ -38,13 +38,13 @@ EXPECTED_MEDIAN_NEES = 2.37  # of a chi-square with 3 degrees of freedom
 def edge_shift_px(image: np.ndarray, truth, calibration, tag_ids: tuple[int, ...]) -> float | None:
     """The median offset (pixels, towards the white side) of the image's edge profiles from
     the cube's edges projected with the true pose: the bias every edge shares."""
-    from positioning.edge_alignment import _measure, edge_model
+    from positioning.edge_alignment import edge_model, measure_edges
     from positioning.target import make_cube
 
     if not tag_ids:
         return None
     T_camera_world = truth.inverse()
-    measured = _measure(image, edge_model(make_cube(), tuple(tag_ids), 4), T_camera_world.rotation,
+    measured = measure_edges(image, edge_model(make_cube(), tuple(tag_ids), 4), T_camera_world.rotation,
                         T_camera_world.translation, calibration)
     return None if measured is None else float(np.median(measured[0]))
 

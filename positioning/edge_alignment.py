@@ -26,7 +26,7 @@ import numpy as np
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_pose, project_with_jacobian
 from positioning.corner_pose import MIN_CORNER_SIGMA_PX, TargetPose
-from positioning.geometry import Transform
+from positioning.geometry import Transform, rotation_from_rvec
 from positioning.jit import compiled, read_only
 from positioning.step_profiles import step_positions
 from positioning.tag_bits import grid_to_world, tag_edges
@@ -196,7 +196,7 @@ class Corners:
 
 def _layout(pixels, point_j, tangents, normals, cell_m, width, height, half_cells, max_half, min_half,
             step_px, min_cosine):
-    """The compiled loop under ``_measure``: each edge sample's profile from the black cell
+    """The compiled loop under ``measure_edges``: each edge sample's profile from the black cell
     to the white one. Returns (usable samples' indices, starts, deltas, steps: a profile
     has 2 * steps + 1 samples, scale and shift: a step found at s samples lies
     s * scale - shift pixels from the projected edge along its image normal, normals)."""
@@ -253,7 +253,7 @@ def _layout(pixels, point_j, tangents, normals, cell_m, width, height, half_cell
 
 
 def _offsets(position, good, clean, runs, scale, shift, normals, point_j, points, index):
-    """The compiled loop under ``_measure`` after the step profiles: the clean profiles'
+    """The compiled loop under ``measure_edges`` after the step profiles: the clean profiles'
     offsets from the model's edges, and their rows of d(offset)/d(omega, delta_t) (the
     projected point moves by J (omega x X_c + delta_t)). Returns (offsets, jacobian, model
     indices)."""
@@ -282,7 +282,7 @@ def _offsets(position, good, clean, runs, scale, shift, normals, point_j, points
     return offset, jacobian, kept
 
 
-def _warm_up() -> None:  # through _measure, on a tag's worth of synthetic edges
+def _warm_up() -> None:  # through measure_edges, on a tag's worth of synthetic edges
     from calib.camera_info import CameraCalibration
 
     rng = np.random.default_rng(0)
@@ -291,14 +291,14 @@ def _warm_up() -> None:  # through _measure, on a tag's worth of synthetic edges
                       np.tile([1.0, 0.0, 0.0], (count, 1)), np.tile([0.0, 1.0, 0.0], (count, 1)),
                       np.full(count, 0.01), np.zeros(count, np.int64), np.zeros(count, np.int64))
     camera = CameraCalibration(200, 200, np.array([[1000.0, 0, 100], [0, 1000.0, 100], [0, 0, 1]]), np.zeros(5))
-    _measure(np.zeros((200, 200), np.uint8), model, np.eye(3), np.zeros(3), camera)
+    measure_edges(np.zeros((200, 200), np.uint8), model, np.eye(3), np.zeros(3), camera)
 
 
 _compiled_layout = compiled(_layout, _warm_up)  # see positioning/jit.py
-_compiled_offsets = compiled(_offsets, lambda: None)  # warmed up with the layout's, by _measure
+_compiled_offsets = compiled(_offsets, lambda: None)  # warmed up with the layout's, by measure_edges
 
 
-def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translation: np.ndarray,
+def measure_edges(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translation: np.ndarray,
              calibration: CameraCalibration, spread: bool = False):
     """Offsets (pixels along the projected edge's normal) of the image's steps from the
     model's projected edges, with their Jacobian for the left perturbation of the pose;
@@ -328,10 +328,6 @@ def _measure(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translat
     return offset, jacobian, kept, spreads[good] * scale[good] ** 2  # (the kernel leaves only the rows kept good)
 
 
-def _rotation_of(omega: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(omega, np.float64).reshape(3, 1))[0]
-
-
 def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibration, tag_ids: tuple[int, ...],
                    rvec: np.ndarray, tvec: np.ndarray, iterations: int | None = None,
                    samples_per_cell: int | None = None, corners: Corners | None = None) -> EdgeFit | None:
@@ -347,7 +343,7 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
     they are fitted alone: the corners, biased by blur, would pull the directions the
     edges measure weakly their way (a two-face cube at 640x512: 1.3 -> 1.7 mm median)."""
     iterations = ITERATIONS if iterations is None else iterations
-    rotation = _rotation_of(rvec)
+    rotation = rotation_from_rvec(rvec)
     translation = np.asarray(tvec, np.float64).reshape(3).copy()
     camera_in_world = -rotation.T @ translation
     kept = []
@@ -380,7 +376,7 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
     iterations = max(iterations, 1)
     for iteration in range(iterations):
         last = iteration == iterations - 1
-        measured = _measure(image, model if last else coarse, rotation, translation, calibration, spread=last)
+        measured = measure_edges(image, model if last else coarse, rotation, translation, calibration, spread=last)
         if measured is None or len(measured[0]) < MIN_PROFILES:
             return None
         offset, jacobian, rows, spread = measured
@@ -399,7 +395,7 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
             step = np.linalg.solve(normal, a.T @ b)  # normal equations: 6 unknowns
         if not np.all(np.isfinite(step)):
             return None
-        small = _rotation_of(step[:3])
+        small = rotation_from_rvec(step[:3])
         rotation, translation = small @ rotation, small @ translation + step[3:]
         fit = (a, b - a @ step, spread[inlier], rows[inlier])
     a, residuals, spread, rows = fit  # the last iteration's: of ``model``

@@ -41,8 +41,7 @@ class Transform:
     @staticmethod
     def from_rvec_tvec(rvec: np.ndarray, tvec: np.ndarray) -> Transform:
         """From OpenCV's solvePnP output (which is T_camera_object)."""
-        rotation, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
-        return Transform(rotation, np.asarray(tvec, dtype=np.float64).reshape(3))
+        return Transform(rotation_from_rvec(rvec), np.asarray(tvec, dtype=np.float64).reshape(3))
 
     @staticmethod
     def from_quaternion(position: np.ndarray, quaternion_xyzw: np.ndarray) -> Transform:
@@ -80,6 +79,11 @@ class Transform:
         """Angle in radians of the relative rotation between two transforms."""
         relative = self.rotation.T @ other.rotation
         return float(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def rotation_from_rvec(rvec: np.ndarray) -> np.ndarray:
+    """The rotation matrix (3, 3) of a Rodrigues vector (OpenCV's)."""
+    return cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -207,7 +207,8 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
     measurement), jointly over the free tags' placements and the view poses, from the
     corners' solution. The corners fix where the tags are to ~0.05 mm; the edges, many
     more and measured without fitting lines, take that further."""
-    from positioning.edge_alignment import MIN_PROFILES, _measure, _rotation_of, edge_model
+    from positioning.edge_alignment import MIN_PROFILES, edge_model, measure_edges
+    from positioning.geometry import rotation_from_rvec
 
     nominal, first, free = problem.nominal, problem.first, problem.free
     solved = (first, *free)
@@ -215,12 +216,12 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
     tag_centre = {t: problem.centres[t].copy() for t in solved}
     for t in free:
         p = x[6 * problem.tag_slot[t]: 6 * problem.tag_slot[t] + 6]
-        tag_rotation[t] = _rotation_of(p[:3])
+        tag_rotation[t] = rotation_from_rvec(p[:3])
         tag_centre[t] = problem.centres[t] + p[3:]
     view_rotation, view_translation = [], []
     for v in range(len(views)):
         pose = x[problem.offset + 6 * v: problem.offset + 6 * v + 6]
-        view_rotation.append(_rotation_of(pose[:3]))
+        view_rotation.append(rotation_from_rvec(pose[:3]))
         view_translation.append(pose[3:].copy())
     models = {}
     for v, view in enumerate(views):
@@ -244,7 +245,7 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
             moved = type(model)(points, np.einsum("mij,mj->mi", rotation, model.tangents),
                                 np.einsum("mij,mj->mi", rotation, model.normals), model.cell_m, model.tag_index,
                                 model.run_index)
-            measured = _measure(view.image, moved, view_rotation[v], view_translation[v], calibration)
+            measured = measure_edges(view.image, moved, view_rotation[v], view_translation[v], calibration)
             if measured is None or len(measured[0]) < MIN_PROFILES:
                 continue
             offset, camera_j, kept, _ = measured
@@ -293,11 +294,11 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
             step = np.linalg.lstsq(damped, gradient, rcond=None)[0]
         for t in free:
             slot = problem.tag_slot[t]
-            small = _rotation_of(step[6 * slot: 6 * slot + 3])
+            small = rotation_from_rvec(step[6 * slot: 6 * slot + 3])
             tag_rotation[t] = small @ tag_rotation[t]
             tag_centre[t] = tag_centre[t] + step[6 * slot + 3: 6 * slot + 6]
         for v in range(n_views):
-            small = _rotation_of(step[6 * (n_free + v): 6 * (n_free + v) + 3])
+            small = rotation_from_rvec(step[6 * (n_free + v): 6 * (n_free + v) + 3])
             view_rotation[v] = small @ view_rotation[v]
             view_translation[v] = small @ view_translation[v] + step[6 * (n_free + v) + 3: 6 * (n_free + v) + 6]
         sigma2 = squares / max(profiles - size, 1)

@@ -11,7 +11,12 @@ from fakes.optics import project
 from fakes.scene import tag_bits
 from positioning.camera_model import project_with_jacobian
 from positioning.detection import TagDetector, refine_corners
-from positioning.edge_alignment import _measure, align_to_edges, edge_model, refine_pose_on_edges
+from positioning.edge_alignment import (
+    align_to_edges,
+    edge_model,
+    measure_edges,
+    refine_pose_on_edges,
+)
 from positioning.geometry import Transform
 from positioning.range_map import camera_on_sphere
 from positioning.tag_bits import grid_to_world, tag_cells, tag_edges
@@ -71,7 +76,7 @@ def test_projection_and_jacobian_match_opencv_with_distortion():
 
 
 def test_measured_offsets_are_the_edges_displacement_along_their_jacobian():
-    """``_measure`` (compiled): at the true pose the steps lie on the model's edges; with
+    """``measure_edges`` (compiled): at the true pose the steps lie on the model's edges; with
     the model moved by a known small pose change, the offsets are minus the Jacobian's
     prediction of that motion, profile by profile."""
     truth = camera_on_sphere(40.0, 30.0, 2.0)
@@ -79,12 +84,12 @@ def test_measured_offsets_are_the_edges_displacement_along_their_jacobian():
     T_camera_world = truth.inverse()
     rotation, translation = T_camera_world.rotation, T_camera_world.translation
     model = edge_model(CUBE, (0, 1, 4), 4)
-    offsets, jacobian, kept, _ = _measure(image, model, rotation, translation, CAMERA)
+    offsets, jacobian, kept, _ = measure_edges(image, model, rotation, translation, CAMERA)
     assert len(kept) > 0.9 * len(model.points) and jacobian.shape == (len(kept), 6)
     assert np.median(np.abs(offsets)) < 0.03  # 0.016 px
     change = np.array([0.0004, -0.0003, 0.0002, 0.0008, -0.0006, 0.0010])  # omega (rad), delta_t (m)
     small = cv2.Rodrigues(change[:3])[0]
-    moved, jacobian_moved, kept_moved, _ = _measure(image, model, small @ rotation, small @ translation + change[3:],
+    moved, jacobian_moved, kept_moved, _ = measure_edges(image, model, small @ rotation, small @ translation + change[3:],
                                                     CAMERA)
     common, here, there = np.intersect1d(kept, kept_moved, return_indices=True)
     predicted = jacobian[here] @ change  # 0.5-2 px
