@@ -92,13 +92,11 @@ def make_processor(prepared: Prepared) -> FrameProcessor:
 
         from positioning.tracking import ProcessorOptions, TrackingProcessor
 
-        processor_options = ProcessorOptions(pose=pose_options)
-        processor_options = replace(processor_options, tracker=replace(processor_options.tracker,
-                                                                       loop_closure=options.loop_closure))
+        tracker = replace(ProcessorOptions().tracker, loop_closure=options.loop_closure)
         if prepared.config.map.file is not None:  # a map to keep: more keyframes than the tracker's own 40
-            processor_options = replace(processor_options, tracker=replace(
-                processor_options.tracker, max_keyframes=prepared.config.map.keyframes))
-        return TrackingProcessor(prepared.target, prepared.calibration, processor_options)
+            tracker = replace(tracker, max_keyframes=prepared.config.map.keyframes)
+        return TrackingProcessor(prepared.target, prepared.calibration,
+                                 ProcessorOptions(pose=pose_options, tracker=tracker))
     from positioning.single_frame import TargetPoseProcessor
 
     return TargetPoseProcessor(prepared.target, prepared.calibration, pose_options)

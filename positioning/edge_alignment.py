@@ -299,7 +299,7 @@ _compiled_offsets = compiled(_offsets, lambda: None)  # warmed up with the layou
 
 
 def measure_edges(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translation: np.ndarray,
-             calibration: CameraCalibration, spread: bool = False):
+                  calibration: CameraCalibration, spread: bool = False):
     """Offsets (pixels along the projected edge's normal) of the image's steps from the
     model's projected edges, with their Jacobian for the left perturbation of the pose;
     profiles that are not clean single steps are left out. Returns (offsets (K,),

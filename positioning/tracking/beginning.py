@@ -97,7 +97,7 @@ class MapBeginning:
         if result.frame is not init:  # the reference's tracks ran out: the longest baseline weighed
             return self._begin_on_earlier_frame(result, best, frame)
         keyframe = self._start_map(result, trusted)
-        return TrackerOutput(FrameResult(estimate, status, result.detail), True, empty, result.status, True,
+        return TrackerOutput(FrameResult(estimate, status, result.detail), True, empty, result.status,
                              frame=replace(frame, pose=trusted.T_world_camera, keyframe=keyframe))
 
     def _departed(self, frame: TrackedFrame, held: tuple[Transform, np.ndarray] | None) -> TrackerOutput | None:

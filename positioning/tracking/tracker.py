@@ -227,7 +227,7 @@ class Tracker(MapBeginning, LoopClosure):
             return TrackerOutput(FrameResult(estimate, status, "target pose too uncertain to map from"), True, drop,
                                  frame=frame)
         keyframe = self._maybe_keyframe(frame, pose, sigma, trusted, inliers, forced)
-        return TrackerOutput(FrameResult(estimate, status), keyframe is not None, drop, keyframe=keyframe is not None,
+        return TrackerOutput(FrameResult(estimate, status), keyframe is not None, drop,
                              frame=replace(frame, keyframe=keyframe))
 
     @property

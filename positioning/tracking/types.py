@@ -75,5 +75,9 @@ class TrackerOutput:
     want_features: bool  # detect fresh corners in this image and hand them to add_tracks()
     drop_ids: np.ndarray  # (K,) tracks rejected as outliers: stop following them
     init_status: InitStatus | None = None  # while initialising: why not yet
-    keyframe: bool = False
     frame: TrackedFrame | None = None  # always set by Tracker.step: what add_tracks takes next
+
+    @property
+    def keyframe(self) -> bool:
+        """The step made this frame a keyframe."""
+        return self.frame is not None and self.frame.keyframe is not None
