@@ -165,6 +165,67 @@ def test_a_position_held_on_rays_alone_claims_no_more_than_the_robot_s_motion_al
     assert max(nees) < 14.16, nees
 
 
+def test_a_hold_is_as_unsure_as_the_pose_it_began_on():
+    """Rays born on a far target pose (0.18 m off, and saying so: 0.1 m a side), then held
+    while the robot stands still: the held position stays where that pose put it, so it
+    must claim that pose's uncertainty as well as its own. Each held pose inside 3 sigma;
+    without the base pose's covariance the same poses reach a NEES of 77."""
+    from positioning.camera_model import project_normalised
+    from positioning.tracking.hold import RayHold
+    from positioning.tracking.map import Map
+    from positioning.tracking.motion import MotionModel
+    from positioning.tracking.options import TrackerOptions
+
+    fx = 600.0
+    rng = np.random.default_rng(5)
+    points = rng.uniform([-3, -2, 2], [3, 2, 6], (200, 3))
+    truth = Transform.identity()
+    xn = project_normalised(truth.inverse(), points)[0]
+    base = Transform(np.eye(3), np.array([0.12, -0.08, 0.10]))  # where the target pose put it
+    base_covariance = np.diag([0.1**2] * 3 + [0.002**2] * 3)
+    hold, motion = RayHold(TrackerOptions(), fx), MotionModel(TrackerOptions())
+    ids = np.arange(200)
+    hold.rebase(base, ids, xn, base_covariance)
+    last, nees = base, []
+    for k in range(1, 11):  # 1 s at 10 fps
+        seen = xn + rng.normal(0, 0.3 / fx, xn.shape)
+        motion.last, motion.stamp = last, (k - 1) * 100_000_000
+        held = hold.hold(k * 100_000_000, motion, last, Tracks(ids, seen * fx), seen, Map())
+        assert held is not None, k
+        last = held[0]
+        error = last.translation - truth.translation
+        assert np.linalg.norm(error) > 0.15  # the hold stays where the base put it
+        nees.append(float(error @ np.linalg.solve(held[1][:3, :3], error)))
+        hold.rebase(None, ids, seen)
+    assert max(nees) < 14.16, nees
+
+
+def test_a_velocity_is_as_unsure_as_the_poses_it_was_measured_between():
+    """The step from a held pose 1.6 m off (and saying so) to a target pose 30 ms later is
+    a velocity of 48 m/s that the robot, standing still, never had. A coast on it one frame
+    later lands 1.6 m off: its covariance must say so (it claimed 10 mm, a NEES of ~23000).
+    Between two poses a millimetre sure, the same coast claims under a centimetre."""
+    from positioning.tracking.motion import MotionModel
+    from positioning.tracking.options import TrackerOptions
+
+    frame_ns = 33_000_000
+    motion = MotionModel(TrackerOptions())
+    held = Transform(np.eye(3), np.array([1.6, 0.0, 0.0]))
+    motion.update(held, 0, own=np.eye(6) * 1.6**2, held=True)
+    motion.update(Transform.identity(), frame_ns, own=np.eye(6) * 0.1**2)  # the target: the truth, 0.1 m unsure
+    prediction = motion.predict(2 * frame_ns)
+    error = prediction.translation
+    assert np.linalg.norm(error) > 1.5
+    _, covariance = motion.coast(prediction, frame_ns / 1e9)
+    assert error @ np.linalg.solve(covariance[:3, :3], error) < 14.16
+
+    sure = MotionModel(TrackerOptions())
+    sure.update(Transform.identity(), 0, own=np.eye(6) * 0.001**2)
+    sure.update(Transform(np.eye(3), np.array([0.0, 0.0, 0.01])), frame_ns, own=np.eye(6) * 0.001**2)
+    _, covariance = sure.coast(sure.predict(2 * frame_ns), frame_ns / 1e9)
+    assert np.sqrt(np.max(np.linalg.eigvalsh(covariance[:3, :3]))) < 0.012
+
+
 def test_a_target_pose_too_uncertain_to_anchor_is_published_but_neither_moves_nor_maps():
     """Lost, the cube comes back too far away to anchor: its poses, each 10 cm off on its
     own, go out (with their covariance) but make no keyframe, and the steps between them are

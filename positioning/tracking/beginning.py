@@ -60,7 +60,7 @@ class MapBeginning:
             # tracks born on target poses, the map still waits for the target
             pose, covariance = held[0], self._drift.covariance(self.motion.last, held[0], held[1])  # the path since
             self._hold.rebase(None, tracks.ids, xn)
-            self.motion.update(pose, stamp_ns)
+            self.motion.update(pose, stamp_ns, own=held[1], held=True)
             estimate = PoseEstimate(pose, PoseState.TRACKING, 0, (), 0.0, covariance, PoseSource.HELD)
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays (initialising)"), False,
                                  empty, status, frame=replace(frame, pose=pose))
@@ -73,9 +73,10 @@ class MapBeginning:
         estimate = PoseEstimate(trusted.T_world_camera, state, trusted.planes, trusted.tag_ids,
                                 trusted.reproj_rms_px, trusted.published_covariance, PoseSource.TARGET)
         status = "relocalised" if state is PoseState.RELOCALISED else "ok"
-        self._hold.rebase(trusted.T_world_camera, tracks.ids, xn)
+        self._hold.rebase(trusted.T_world_camera, tracks.ids, xn, trusted.published_covariance)
         # beginning again, the pose is too unsure to anchor a keyframe: not taken for motion either
-        self.motion.update(trusted.T_world_camera, stamp_ns, noisy=self.initialised)
+        self.motion.update(trusted.T_world_camera, stamp_ns, noisy=self.initialised,
+                           own=trusted.published_covariance)
         if not self._anchors(trusted):
             # published, but too uncertain to fix the map's scale and frame
             return TrackerOutput(FrameResult(estimate, status, "initialising: target pose too uncertain to anchor"),

@@ -40,6 +40,8 @@ class RayHold:
         self.rays: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.since: int | None = None  # stamp of the last measured pose before the hold
         self.speed_m_s = 0.0  # the camera's speed by the motion model when the hold began
+        # the 6x6 covariance of the measured pose the rays last started from (None: unknown)
+        self.base_covariance: np.ndarray | None = None
 
     @property
     def holding(self) -> bool:
@@ -48,15 +50,17 @@ class RayHold:
     def end(self) -> None:
         self.since = None
 
-    def rebase(self, pose: Transform | None, ids: np.ndarray, xn: np.ndarray) -> None:
+    def rebase(self, pose: Transform | None, ids: np.ndarray, xn: np.ndarray,
+               covariance: np.ndarray | None = None) -> None:
         """Keep the rays of the live tracks ``ids``. On a frame with a measured pose
-        (``pose``) every ray starts again there: a ray is only as good as the pose it
-        starts from, and the newest measured one is the best (a correction of the map
-        moves the old ones)."""
+        (``pose``, its own ``covariance``) every ray starts again there: a ray is only as
+        good as the pose it starts from, and the newest measured one is the best (a
+        correction of the map moves the old ones)."""
         if pose is None:
             self.rays = {int(t): self.rays[int(t)] for t in ids if int(t) in self.rays}
             return
         self.rays = self._from(pose, ids, xn)
+        self.base_covariance = None if covariance is None else np.asarray(covariance, np.float64)
 
     def add(self, pose: Transform, ids: np.ndarray, xn: np.ndarray) -> None:
         """Rays for new tracks, born in a frame of pose ``pose``."""
@@ -83,7 +87,8 @@ class RayHold:
         has = world_map.mapped(tracks.ids)
         born = np.array([not h and int(t) in self.rays for t, h in zip(tracks.ids, has, strict=True)], bool)
         if born.sum() < o.min_hold_rays:
-            return motion.coast(prediction, held_s)
+            coasted = motion.coast(prediction, held_s)
+            return None if coasted is None else (coasted[0], self._from_base(coasted[1]))
         points = np.array([world_map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)
         depths = prediction.inverse().apply(points)[:, 2] if has.any() else np.zeros(0)
         depths = depths[depths > 0]
@@ -108,7 +113,9 @@ class RayHold:
         if np.degrees(rotation_sigma) > o.max_hold_rotation_sigma_deg:
             return None
         covariance = fit.covariance
-        if odometry is None and fit.point_inliers.sum() < o.min_hold_points:
+        if fit.point_inliers.sum() >= o.min_hold_points:
+            return fit.T_world_camera, covariance  # map points place it: in the map, not from the base
+        if odometry is None:
             # nothing measured the position (rays of unknown depth, each fresh one born on a
             # held pose, agree with a position left behind): it is as unsure as the robot's
             # motion allows (docs/family.md, "What was traced")
@@ -116,7 +123,13 @@ class RayHold:
             floor = motion.unmeasured_sigma(self.speed_m_s, held_s) ** 2
             smallest = float(np.min(np.linalg.eigvalsh(covariance[:3, :3])))
             covariance[:3, :3] += np.eye(3) * max(0.0, floor - smallest)
-        return fit.T_world_camera, covariance
+        return fit.T_world_camera, self._from_base(covariance)
+
+    def _from_base(self, covariance: np.ndarray) -> np.ndarray:
+        """``covariance``, of the pose held since the base (the rays' directions, the motion
+        from it), plus the base pose's own: a hold carries on from where the base was, so it
+        is off by at least as much (a hold from a target pose 160 mm unsure had claimed 11 mm)."""
+        return covariance if self.base_covariance is None else covariance + self.base_covariance
 
 
 class Drift:

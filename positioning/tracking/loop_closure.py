@@ -118,5 +118,7 @@ class LoopClosure:
         pose = correction @ current
         self.last_closure = (stamp_ns, current, pose)
         self.motion.moved(pose, stamp_ns)
-        self._hold.rebase(pose, frame.tracks.ids, frame.xn)
+        matched = np.zeros((6, 6))
+        matched[:3, :3] = np.linalg.inv(information)  # the matches place it (their orientation: not weighed)
+        self._hold.rebase(pose, frame.tracks.ids, frame.xn, matched)
         return "closed", replace(frame, pose=pose)

@@ -39,6 +39,10 @@ class MotionModel:
         # camera motion per second (rotation vector, translation of T_last_next in the last
         # camera's frame)
         self.velocity: tuple[np.ndarray, np.ndarray] | None = None
+        # the covariance (3, 3, world frame, per second squared) of the velocity's translation:
+        # what the own covariances of the two poses it was measured between allow
+        self.velocity_covariance: np.ndarray | None = None
+        self.own: np.ndarray | None = None  # the last pose's own position covariance (3, 3), drift apart
         self.after_relocalisation = False  # the last pose was a correction (relocalised())
         self.measured: tuple[Transform, int] | None = None  # the last pose measured (not held), its stamp
 
@@ -64,12 +68,20 @@ class MotionModel:
         return pose @ Transform.from_rvec_tvec(rotation_per_s * dt, translation_per_s * dt)
 
     # ------------------------------------------------------------------ what a pose tells
-    def update(self, pose: Transform, stamp_ns: int, noisy: bool = False) -> None:
+    def update(self, pose: Transform, stamp_ns: int, noisy: bool = False, own: np.ndarray | None = None,
+               held: bool = False) -> None:
         """Take ``pose`` as the last one and the step to it as the velocity, unless the
-        step is a correction or ``noisy`` (then the velocity stays, also for the next step)."""
+        step is a correction or ``noisy`` (then the velocity stays, also for the next step).
+        ``own`` is the pose's own covariance (its measurement's, the map's drift apart): a
+        velocity measured between two poses is as unsure as their own covariances over the
+        step allow. A ``held`` pose followed the prediction, so its step measures nothing
+        new: the velocity's covariance stays (from a held pose 1.6 m off to a target pose,
+        the step is 48 m/s, and the coast after it 1.7 m off had claimed 0.11 m)."""
         dt = (stamp_ns - self.stamp) / 1e9
+        own = None if own is None else np.asarray(own, np.float64)[:3, :3]
+        previous, self.own = self.own, own
         if self.last is None or not 0.0 < dt <= self.options.max_extrapolation_s:
-            self.velocity = None
+            self.velocity = self.velocity_covariance = None
         elif noisy:
             pass
         elif self.after_relocalisation and self.velocity is not None:
@@ -79,10 +91,14 @@ class MotionModel:
             pass
         else:
             self.velocity = velocity(self.last, pose, dt)
+            if not held:
+                both = [c for c in (previous, own) if c is not None]
+                self.velocity_covariance = sum(both) / dt**2 if both else None
         self.after_relocalisation = noisy
         self.last, self.stamp = pose, stamp_ns
 
-    def relocalised(self, pose: Transform, stamp_ns: int, covariance: np.ndarray | None) -> None:
+    def relocalised(self, pose: Transform, stamp_ns: int, covariance: np.ndarray | None,
+                    own: np.ndarray | None = None) -> None:
         """``pose`` was found by matching the frame to the map: a correction of where the
         camera is. The velocity stays: a relocalisation corrects where the camera is, not
         how it moves (spin_on_axis, 4.5 deg a frame: without it the next frame's unguided
@@ -98,6 +114,8 @@ class MotionModel:
                 expected = before if self.velocity is None else self.extrapolated(before, dt)
                 if beyond_motion(pose, expected, self.options):
                     self.velocity = velocity(before, pose, dt)
+                    self.velocity_covariance = None if own is None else np.asarray(own)[:3, :3] / dt**2
+        self.own = None if own is None else np.asarray(own, np.float64)[:3, :3]
         self.measured = (pose, stamp_ns)
         self.last, self.stamp, self.covariance = pose, stamp_ns, covariance
         self.after_relocalisation = True
@@ -109,7 +127,7 @@ class MotionModel:
 
     def stop(self) -> None:
         """Lost: the velocity is no longer known."""
-        self.velocity = None
+        self.velocity = self.velocity_covariance = None
 
     # ------------------------------------------------------------------ unmeasured
     def speed(self, prediction: Transform, stamp_ns: int) -> float:
@@ -123,26 +141,35 @@ class MotionModel:
         decay = 0.5 ** ((stamp_ns - self.stamp) / 1e9 / self.options.hold_velocity_half_life_s)
         return self.last.translation + decay * (prediction.translation - self.last.translation)
 
+    def velocity_sigma(self) -> float:
+        """The largest standard deviation of the velocity's translation (m/s), 0 unknown."""
+        if self.velocity_covariance is None:
+            return 0.0
+        return float(np.sqrt(max(np.max(np.linalg.eigvalsh(self.velocity_covariance)), 0.0)))
+
     def unmeasured_sigma(self, speed_m_s: float, seconds: float) -> float:
         """The standard deviation of a position nothing has measured for ``seconds``: the
-        robot may have gone on at the speed it had then (``speed_m_s``; the motion model lets
-        that speed die away) or changed it by ``coast_accel_m_s2`` (0.5 a t^2), as the
-        coast assumes."""
+        robot may have gone on at the speed it had then (``speed_m_s``, itself as unsure as
+        ``velocity_sigma``; the motion model lets that speed die away) or changed it by
+        ``coast_accel_m_s2`` (0.5 a t^2), as the coast assumes."""
         o = self.options
-        return o.hold_sigma_m + (o.hold_sigma_m_per_s + speed_m_s) * seconds \
+        return o.hold_sigma_m + (o.hold_sigma_m_per_s + speed_m_s + self.velocity_sigma()) * seconds \
             + 0.5 * o.coast_accel_m_s2 * seconds * seconds
 
     def coast(self, prediction: Transform, seconds: float) -> Held | None:
         """Nothing to see (a passer-by filling the view): the prediction for at most
         ``max_coast_s`` since the last measured pose, with the covariance of a robot that
         may have changed its speed by ``coast_accel_m_s2`` and its turn rate by
-        ``coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2)."""
+        ``coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2), at a velocity known to
+        ``velocity_covariance``."""
         o = self.options
         if seconds > o.max_coast_s:
             return None
         t = max(seconds, 1e-3)
         covariance = np.zeros((6, 6))
         covariance[:3, :3] = np.eye(3) * (o.hold_sigma_m + 0.5 * o.coast_accel_m_s2 * t * t) ** 2
+        if self.velocity_covariance is not None:  # carried on at a velocity this unsure
+            covariance[:3, :3] += self.velocity_covariance * t * t
         covariance[3:, 3:] = np.eye(3) * (0.5 * o.coast_angular_accel_rad_s2 * t * t) ** 2
         return prediction, covariance
 

@@ -205,14 +205,17 @@ class Tracker(MapBeginning, LoopClosure):
         self.lost = False
         if held is None:
             self._hold.end()
-        self._hold.rebase(pose if held is None else None, tracks.ids, xn)
+        # the rays start again on a measured pose, with what that pose's own measurement says of it
+        own = None if held is not None else (trusted.published_covariance if trusted is not None else covariance)
+        self._hold.rebase(pose if held is None else None, tracks.ids, xn, own)
         sigma = position_sigma(trusted.covariance if trusted is not None else covariance)
         self.motion.covariance = estimate.covariance
         # a visible correction is where the camera is, not how it moved, and the steps into
         # and out of a target pose too uncertain to anchor are its error: the velocity stays
         self.motion.after_relocalisation = self.motion.after_relocalisation or forced
         noisy = trusted is not None and not self._anchors(trusted)
-        self.motion.update(pose, stamp_ns, noisy=noisy)
+        self.motion.update(pose, stamp_ns, noisy=noisy, own=covariance if own is None else own,
+                           held=held is not None)
         if held is None and not noisy:
             self.motion.measured = (pose, stamp_ns)
         frame = replace(frame, pose=pose)
@@ -267,7 +270,7 @@ class Tracker(MapBeginning, LoopClosure):
         match, covariance = covariance, self._drift.covariance(self.motion.last, pose, covariance)
         self._hold.end()
         self.lost = False
-        self.motion.relocalised(pose, stamp_ns, covariance)
+        self.motion.relocalised(pose, stamp_ns, covariance, match)
         self._tracks_stamp = stamp_ns
         xn = undistort(tracks.pixels, self.calibration)
         keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn)
