@@ -26,7 +26,7 @@ import numpy as np
 from calib.camera_info import CameraCalibration
 from positioning.camera_model import project_pose, project_with_jacobian
 from positioning.corner_pose import MIN_CORNER_SIGMA_PX, TargetPose
-from positioning.geometry import Transform, rotation_from_rvec
+from positioning.geometry import Transform, robust_sigma, rotation_from_rvec
 from positioning.jit import compiled, read_only
 from positioning.step_profiles import step_positions
 from positioning.tag_bits import grid_to_world, tag_edges
@@ -382,7 +382,7 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
         offset, jacobian, rows, spread = measured
         # Robust: a step further than 4 sigma (median-based) from the rest is not this edge.
         centre = np.median(offset)
-        sigma = 1.4826 * np.median(np.abs(offset - centre)) + 1e-3
+        sigma = robust_sigma(offset, centre) + 1e-3
         inlier = np.abs(offset - centre) <= 4.0 * sigma + 0.05
         a, b = jacobian[inlier], offset[inlier]
         normal = a.T @ a

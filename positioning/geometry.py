@@ -1,4 +1,5 @@
-"""Rigid transforms and the quaternion convention used everywhere in cubeloc.
+"""Rigid transforms and the quaternion convention used everywhere in cubeloc, and the
+small shared maths beside them (``skew``, ``robust_sigma``).
 
 ``Transform`` T_a_b maps points from frame b into frame a: ``p_a = R @ p_b + t``.
 Names say the frames (``T_world_camera``, ``T_camera_target``), as in mrcal and pyslam.
@@ -120,3 +121,22 @@ def look_at(camera_position: np.ndarray, target: np.ndarray, up: np.ndarray = (0
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return Transform(np.column_stack([x, y, z]), position)
+
+
+# a normal distribution's standard deviation over its median absolute deviation
+MAD_TO_SIGMA = 1.4826
+
+
+def robust_sigma(values: np.ndarray, centre: float | None = None, times: float = 1.0) -> float:
+    """``times`` the standard deviation of ``values`` that their median absolute deviation
+    about ``centre`` gives (their median when None; 0 for magnitudes, such as residual
+    norms): the outlier rule everywhere a few bad values must not set the scale.
+
+    >>> robust_sigma(np.array([1.0, 2.0, 3.0, 100.0]))
+    1.4826
+    >>> robust_sigma(np.array([0.1, 0.2, 0.3]), 0.0, times=3.0)
+    0.88956
+    """
+    if centre is None:
+        centre = float(np.median(values))
+    return times * MAD_TO_SIGMA * float(np.median(np.abs(np.asarray(values) - centre)))

@@ -45,7 +45,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from cubeloc.errors import CubelocError
-from positioning.geometry import Transform
+from positioning.geometry import Transform, robust_sigma
 
 MIN_TURN_DEG = 20.0  # the largest turn between two poses of a pair must reach this
 MIN_PAIRS = 8
@@ -294,4 +294,4 @@ def camera_height(camera_positions: np.ndarray, up: np.ndarray, floor_point: np.
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     heights = (np.asarray(camera_positions) - np.asarray(floor_point)) @ up
     median = float(np.median(heights))
-    return median, float(1.4826 * np.median(np.abs(heights - median)))
+    return median, robust_sigma(heights, median)

@@ -31,6 +31,7 @@ from calib.camera_info import CameraCalibration
 from cubeloc.errors import InputFileError
 from positioning.camera_model import project_pose
 from positioning.detection import TagDetection, TagDetector, refine_corners
+from positioning.geometry import robust_sigma
 from positioning.target import Tag, Target, validate_target
 from positioning.target_pose import PoseOptions, estimate_target_pose, unique_target_detections
 
@@ -250,7 +251,7 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
                 continue
             offset, camera_j, kept, _ = measured
             middle = np.median(offset)
-            spread = 1.4826 * np.median(np.abs(offset - middle)) + 1e-3
+            spread = robust_sigma(offset, middle) + 1e-3
             inlier = np.abs(offset - middle) <= 4.0 * spread + 0.05
             offset, camera_j, kept = offset[inlier], camera_j[inlier], kept[inlier]
             # d(offset)/d(tag perturbation about its current centre): m = R_view^T n_j

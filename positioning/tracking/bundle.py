@@ -41,7 +41,7 @@ from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
-from positioning.geometry import Transform, skew
+from positioning.geometry import Transform, robust_sigma, skew
 from positioning.tracking import schur_lm
 from positioning.tracking.map import Map
 from positioning.tracking.options import BundleOptions
@@ -193,7 +193,7 @@ def _solve(problem: BundleProblem, options: BundleOptions, fx: float, sigma_px: 
     depth = np.einsum("nij,nj->ni", rotations[problem.obs_kf], points[problem.obs_pt])[:, 2] + translations[
         problem.obs_kf, 2]
     finite = np.isfinite(per_obs)
-    spread = 3.0 * 1.4826 * float(np.median(per_obs[finite])) if finite.any() else options.max_residual_px
+    spread = robust_sigma(per_obs[finite], 0.0, times=3.0) if finite.any() else options.max_residual_px
     limit = min(options.max_residual_px, max(options.min_residual_px, spread))
     bad = (per_obs > limit) | (depth <= 0) | ~finite
     poses = tuple(Transform(r, t).inverse() for r, t in zip(rotations, translations, strict=True))

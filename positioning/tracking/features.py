@@ -24,6 +24,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from positioning.geometry import robust_sigma
 from positioning.tracking.options import FeatureOptions
 from positioning.tracking.patch_alignment import PatchAligner
 from positioning.tracking.types import Tracks
@@ -70,7 +71,7 @@ def brightness_ratio(previous: np.ndarray, previous_pixels: np.ndarray, current:
     logs = np.log(after[usable] / before[usable])
     median = float(np.median(logs))
     # the median's standard error: 1.2533 sigma / sqrt(n), sigma from the MAD
-    standard_error = 1.2533 * 1.4826 * float(np.median(np.abs(logs - median))) / np.sqrt(len(logs))
+    standard_error = robust_sigma(logs, median, times=1.2533) / np.sqrt(len(logs))
     gain = float(np.exp(median))
     if abs(median) <= 3.0 * standard_error or abs(gain - 1.0) * 255.0 < 0.5:
         return 1.0

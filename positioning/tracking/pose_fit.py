@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from positioning.camera_model import project_normalised
-from positioning.geometry import Transform, skew
+from positioning.geometry import Transform, robust_sigma, skew
 
 if TYPE_CHECKING:
     from positioning.tracking.map import Map
@@ -120,7 +120,7 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
         # without it): a point the pose bent to fit (near the camera, on a passer-by) has
         # a small residual of its own but a large deleted one.
         err[mask] = deleted_residuals(T_c_w, obj[mask], img[mask], fx)
-        spread = 3.0 * 1.4826 * float(np.median(err[mask])) if mask.any() else o.pnp_reproj_px
+        spread = robust_sigma(err[mask], 0.0, times=3.0) if mask.any() else o.pnp_reproj_px
         mask = (z > 0) & (err <= min(o.pnp_reproj_px, max(o.pnp_min_reproj_px, spread)))
         if mask.sum() < o.min_pnp_inliers:
             return None, int(mask.sum()), ids[~mask], 0.0, None
