@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import machine_line, markdown_table, renders_root, track_in_process
+from bench.common import machine_line, markdown_table, renders_root
 from bench.intrinsics import SCENARIOS, SEED
+from daemon.replay import track_in_process
 
 TITLE = "The tracker on a board"
 LENSES = ("paper_half", "vga")

@@ -85,42 +85,6 @@ def previous_tree(commit: str, work: Path, given: str | None = None) -> Iterator
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)
 
 
-def in_loop_options():
-    """``ProcessorOptions`` with bundle adjustment in the frame loop: every run the same."""
-    from dataclasses import replace
-
-    from positioning.tracking.options import BundleOptions
-    from positioning.tracking.processor import ProcessorOptions
-
-    options = ProcessorOptions()
-    return replace(options, tracker=replace(options.tracker, bundle=BundleOptions(background=False)))
-
-
-def track_results(sequence: Path, calibration, target=None) -> list:
-    """The tracker's ``FrameResult`` for each frame of a rendered sequence, in this process,
-    bundle adjustment in the frame loop (deterministic), the target's model (the cube's when
-    ``target`` is None) and nothing else known."""
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.target import make_cube
-    from positioning.tracking.processor import TrackingProcessor
-
-    processor = TrackingProcessor(target or make_cube(), calibration, in_loop_options())
-    try:
-        return [processor.process(read_image(e.path), e.stamp_ns, i)
-                for i, e in enumerate(read_sequence_index(sequence))]
-    finally:
-        processor.close()
-
-
-def track_in_process(sequence: Path, calibration, target=None):
-    """``track_results``' ``positioning.evaluation.RunScore`` against the sequence's ground truth."""
-    from positioning.evaluation import score_estimates
-    from positioning.trajectory_io import read_tum
-
-    results = track_results(sequence, calibration, target)
-    return score_estimates(read_tum(sequence / "groundtruth.tum"), [r.estimate for r in results])
-
-
 @contextlib.contextmanager
 def renders_root(bench: str, variable: str = "CUBELOC_BENCH_SEQUENCES") -> Iterator[tuple[Path, Path]]:
     """(where a bench keeps its renders, a scratch folder): the folder ``variable`` names

@@ -238,11 +238,10 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
     """Print, frame by frame, what the tracker did on a rendered family member: status and
     detail, position error and claimed standard deviation (mm), keyframes, map points,
     live tracks and how many of them have a map point, and the textured share of the view."""
-    from bench.common import in_loop_options
     from calib.camera_info import read_camera_info
     from drivers.sequence import read_image, read_sequence_index
     from positioning.target import make_cube
-    from positioning.tracking.processor import TrackingProcessor
+    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
     from positioning.trajectory_io import read_tum
 
     calibration = read_camera_info(sequence / "camera.yaml")
@@ -251,7 +250,7 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
     from fakes.family import make_case
 
     textured = make_case(described["seed"], described["resolution"]).textured
-    processor = TrackingProcessor(make_cube(), calibration, in_loop_options())
+    processor = TrackingProcessor(make_cube(), calibration, ProcessorOptions.in_frame_loop())
     try:
         for i, entry in enumerate(read_sequence_index(sequence)[: last]):
             result = processor.process(read_image(entry.path), entry.stamp_ns, i)

@@ -24,12 +24,11 @@ import numpy as np
 
 def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
     """(problem, options, fx) of the bundle adjustments the tracker ran on ``sequence``."""
-    from bench.common import in_loop_options
     from calib.camera_info import read_camera_info
     from drivers.sequence import read_image, read_sequence_index
     from positioning.target import make_cube
     from positioning.tracking import bundle
-    from positioning.tracking.processor import TrackingProcessor
+    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
     kept, original = [], bundle.solve
 
@@ -38,7 +37,7 @@ def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
         return original(problem, options, fx, sigma_px)
 
     bundle.solve = keeping
-    processor = TrackingProcessor(make_cube(), read_camera_info(sequence / "camera.yaml"), in_loop_options())
+    processor = TrackingProcessor(make_cube(), read_camera_info(sequence / "camera.yaml"), ProcessorOptions.in_frame_loop())
     try:
         for i, entry in enumerate(read_sequence_index(sequence)[:frames]):
             processor.process(read_image(entry.path), entry.stamp_ns, i)

@@ -20,7 +20,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from bench.common import machine_line, markdown_table, renders_root, track_in_process
+from bench.common import machine_line, markdown_table, renders_root
+from daemon.replay import track_in_process
 from fakes.lenses import LENSES, OTHER_LENSES, lens_calibration
 
 TITLE = "The tracker behind other lenses"

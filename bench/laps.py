@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, in_loop_options, machine_line, markdown_table
+from bench.common import REPO, machine_line, markdown_table
 
 TITLE = "Loop closure on repeated laps: with and without, on the same frames"
 LAP_SECONDS = (3.0, 66.0, 129.0, 192.0)  # the laps' bounds in the 200 s scenario (fakes.scenarios._laps)
@@ -41,12 +41,12 @@ def _replay(sequence: Path, loop_closure: bool) -> dict:
     from calib.camera_info import read_camera_info
     from drivers.sequence import read_image, read_sequence_index
     from positioning.target import make_cube
-    from positioning.tracking.processor import TrackingProcessor
+    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
     from positioning.trajectory_io import read_tum
 
     calibration = read_camera_info(sequence / "camera.yaml")
     truth = read_tum(sequence / "groundtruth.tum")
-    options = in_loop_options()
+    options = ProcessorOptions.in_frame_loop()
     options = dataclasses.replace(options, tracker=dataclasses.replace(options.tracker, loop_closure=loop_closure))
     processor = TrackingProcessor(make_cube(), calibration, options)
     errors = np.full(len(truth), np.nan)

@@ -14,13 +14,13 @@ scores them.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
 from bench.common import REPO, markdown_table, renders_root
 from bench.scenarios import _render, _score, _track
+from fakes.odometry import LEVER_M, mount_of
 
 TITLE = "Wheel odometry in: vision alone and vision + wheel odometry on the same frames"
 SCENARIOS = ("spin_in_place", "blank_wall", "spin_on_axis", "passers_by")
@@ -28,24 +28,7 @@ SCENARIOS = ("spin_in_place", "blank_wall", "spin_on_axis", "passers_by")
 # a blank wall; the spread of [frames] map_odom_spread_s (0: none)
 JUMP_SCENARIOS = ("long_lap", "blank_wall")
 SPREADS_S = (0.0, 0.5, 1.0)
-LEVER_M = 0.2  # the camera ahead of the base's axis...
-LEVER_OF = {"spin_on_axis": 0.0}  # ...except where the scenario puts it elsewhere (fakes/scenarios.py)
-
-
-def mount_of(T_world_camera, lever_m: float = LEVER_M) -> tuple[list[float], list[float]]:
-    """T_base_camera (xyz, quaternion) for a base on the floor, ``lever_m`` behind the
-    camera, heading where it looks: exact for the scenario's first pose (tilt included)."""
-    from scipy.spatial.transform import Rotation
-
-    from positioning.geometry import Transform
-
-    forward = T_world_camera.rotation[:, 2]
-    heading = math.atan2(forward[1], forward[0])
-    position = T_world_camera.translation - lever_m * np.array([math.cos(heading), math.sin(heading), 0.0])
-    position[2] = 0.0
-    base = Transform(Rotation.from_euler("z", heading).as_matrix(), position)
-    mount = base.inverse() @ T_world_camera
-    return [float(v) for v in mount.translation], [float(v) for v in mount.quaternion()]
+LEVER_OF = {"spin_on_axis": 0.0}  # the camera's lever where a scenario puts it elsewhere (fakes/scenarios.py)
 
 
 def _config(path: Path, xyz, quaternion, as_prior: bool) -> None:

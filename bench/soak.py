@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from cubeloc.net import free_port
+from positioning.geometry import quaternion_angle_deg
 
 SOAK_DOC = Path(__file__).resolve().parents[1] / "docs" / "soak.md"
 WRONG_POSITION_M = 0.02
@@ -140,30 +141,6 @@ class PoseChecker:
         self.session.close()
 
 
-def quaternion_angle_deg(q1, q2) -> float:
-    dot = abs(float(np.dot(np.asarray(q1, float), np.asarray(q2, float))))
-    return math.degrees(2 * math.acos(min(1.0, dot)))
-
-
-def make_prepared(workdir: Path, port: int, name: str, *, width: int, height: int):
-    from calib.camera_info import paper_camera, write_camera_info
-    from daemon.config import Config
-    from daemon.preflight import prepare
-    from positioning.target import default_cube_yaml
-
-    write_camera_info(workdir / "camera.yaml", paper_camera())
-    (workdir / "target.yaml").write_text(default_cube_yaml())
-    config = Config.model_validate({
-        "name": name,
-        "camera": {"source": "synthetic:static?seconds=1", "width": width, "height": height},
-        "positioning": {"calibration": workdir / "camera.yaml", "target": workdir / "target.yaml"},
-        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"]},
-        "daemon": {"reconnect_initial_s": 0.1, "reconnect_max_s": 0.4},
-        "logging": {"level": "warning"},
-    })
-    return prepare(config)
-
-
 def run_soak(
     seconds: float,
     *,
@@ -176,6 +153,7 @@ def run_soak(
     progress=None,
 ) -> SoakResult:
     """Run the daemon for ``seconds`` and check it (see the module docstring)."""
+    from daemon.preflight import prepare_on_loopback
     from daemon.sdnotify import SystemdNotifier
     from daemon.service import Daemon
     from fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
@@ -192,7 +170,8 @@ def run_soak(
     name = "soak"
     with tempfile.TemporaryDirectory(prefix="cubeloc-soak-") as tmp:
         height, width = frames[0].shape
-        prepared = make_prepared(Path(tmp), port, name, width=width, height=height)
+        prepared = prepare_on_loopback(Path(tmp), port, name, camera={"width": width, "height": height},
+                                       logging={"level": "warning"})
         stop = threading.Event()
         daemon = Daemon(prepared, stop, camera_factory=camera, notifier=SystemdNotifier({}))
         result_processor = type(daemon.processor).__name__

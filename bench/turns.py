@@ -19,7 +19,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bench.common import machine_line, markdown_table, renders_root, track_in_process
+from bench.common import machine_line, markdown_table, renders_root
+from daemon.replay import track_in_process
 
 TITLE = "Brisk turns"
 SEED = 11

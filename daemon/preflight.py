@@ -8,6 +8,7 @@ exit code 2, before a camera or a Zenoh session is opened.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from calib.camera_info import CameraCalibration, read_camera_info
 from cubeloc.errors import ConfigError
@@ -43,6 +44,27 @@ def prepare(config: Config) -> Prepared:
     # camera that is merely absent does not.
     make_camera(config.camera.source, config.camera.settings())
     return prepared
+
+
+def prepare_on_loopback(workdir: Path, port: int, name: str, **sections: dict) -> Prepared:
+    """A daemon prepared as tests, benchmarks and the soak run one on this machine: the
+    synthetic camera, the paper camera's calibration and the default cube (written into
+    ``workdir``), Zenoh listening on 127.0.0.1:``port`` only with no scouting, and quick
+    reconnects. ``sections``: config sections (a dict each) merged key by key over these."""
+    from calib.camera_info import paper_camera, write_camera_info
+    from positioning.target import default_cube_yaml
+
+    write_camera_info(workdir / "camera.yaml", paper_camera())
+    (workdir / "target.yaml").write_text(default_cube_yaml())
+    settings: dict[str, dict] = {
+        "camera": {"source": "synthetic:static?seconds=1"},
+        "positioning": {"calibration": workdir / "camera.yaml", "target": workdir / "target.yaml"},
+        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"]},
+        "daemon": {"reconnect_initial_s": 0.1, "reconnect_max_s": 0.4},
+    }
+    for section, values in sections.items():
+        settings[section] = {**settings.get(section, {}), **values}
+    return prepare(Config.model_validate({"name": name, **settings}))
 
 
 def read_positioning_files(config: Config) -> Prepared:

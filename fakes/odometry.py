@@ -25,6 +25,20 @@ from scipy.spatial.transform import Rotation
 from positioning.geometry import Transform
 
 ODOMETRY_SCHEMA = "cubeloc.odometry/1"
+LEVER_M = 0.2  # the camera ahead of the base's axis, unless a scenario puts it elsewhere
+
+
+def mount_of(T_world_camera: Transform, lever_m: float = LEVER_M) -> tuple[list[float], list[float]]:
+    """T_base_camera (xyz, quaternion [x, y, z, w]) for a base on the floor, ``lever_m``
+    behind the camera, heading where it looks: exact for the pose ``T_world_camera`` (a
+    trajectory's first), tilt included; as ``[frames] base_from_camera`` takes it."""
+    forward = T_world_camera.rotation[:, 2]
+    heading = math.atan2(forward[1], forward[0])
+    position = T_world_camera.translation - lever_m * np.array([math.cos(heading), math.sin(heading), 0.0])
+    position[2] = 0.0
+    base = Transform(Rotation.from_euler("z", heading).as_matrix(), position)
+    mount = base.inverse() @ T_world_camera
+    return [float(v) for v in mount.translation], [float(v) for v in mount.quaternion()]
 
 
 def _planar(T_world_camera: Transform, T_base_camera: Transform) -> tuple[float, float, float]:

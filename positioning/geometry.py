@@ -1,5 +1,5 @@
 """Rigid transforms and the quaternion convention used everywhere in cubeloc, and the
-small shared maths beside them (``skew``, ``robust_sigma``).
+small shared maths beside them (``skew``, ``quaternion_angle_deg``, ``robust_sigma``).
 
 ``Transform`` T_a_b maps points from frame b into frame a: ``p_a = R @ p_b + t``.
 Names say the frames (``T_world_camera``, ``T_camera_target``), as in mrcal and pyslam.
@@ -8,6 +8,7 @@ Quaternions are ``[x, y, z, w]`` (ROS / SciPy order), unit norm, ``w >= 0``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -122,6 +123,16 @@ def look_at(camera_position: np.ndarray, target: np.ndarray, up: np.ndarray = (0
     y = np.cross(z, x)
     return Transform(np.column_stack([x, y, z]), position)
 
+
+
+def quaternion_angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
+    """The angle (degrees) of the rotation between two unit quaternions, either sign.
+
+    >>> round(quaternion_angle_deg([0.0, 0.0, 0.0, 1.0], [0.0, 0.0, np.sin(0.25), np.cos(0.25)]), 4)
+    28.6479
+    """
+    dot = abs(float(np.dot(np.asarray(q1, float), np.asarray(q2, float))))
+    return math.degrees(2 * math.acos(min(1.0, dot)))
 
 # a normal distribution's standard deviation over its median absolute deviation
 MAD_TO_SIGMA = 1.4826

@@ -19,10 +19,8 @@ import yaml
 from helpers import ROUTER, end_process, helper_process, wait_until
 from ros2_msgs import decode
 
-from calib.camera_info import paper_camera, write_camera_info
 from cubeloc.net import free_port
-from daemon.config import Config
-from daemon.preflight import prepare
+from daemon.preflight import prepare_on_loopback
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
 from drivers.base import (
@@ -36,7 +34,6 @@ from drivers.base import (
 )
 from fakes import render_view
 from positioning.geometry import Transform, look_at
-from positioning.target import default_cube_yaml
 
 CAMERA_POSITION = np.array([1.2, -1.0, 0.9])
 
@@ -102,18 +99,10 @@ class Script:
 
 def make_prepared(tmp_path, port: int, frames: dict | None = None, ros2: dict | None = None,
                   connect: tuple[str, ...] = (), **daemon):
-    write_camera_info(tmp_path / "camera.yaml", paper_camera())
-    (tmp_path / "target.yaml").write_text(default_cube_yaml())
-    config = Config.model_validate({
-        **({"frames": frames} if frames is not None else {}),
-        **({"ros2": ros2} if ros2 is not None else {}),
-        "name": "looptest",
-        "camera": {"source": "synthetic:static?seconds=1"},  # (preflight builds it; the Script stands in)
-        "positioning": {"calibration": tmp_path / "camera.yaml", "target": tmp_path / "target.yaml"},
-        "zenoh": {"multicast_scouting": False, "listen": [f"tcp/127.0.0.1:{port}"], "connect": list(connect)},
-        "daemon": {"reconnect_initial_s": 0.1, "reconnect_max_s": 0.4, "status_period_s": 0.25, **daemon},
-    })
-    return prepare(config)
+    """The loop tests' daemon ("looptest"): statuses every 0.25 s, and these sections."""
+    optional = {name: section for name, section in (("frames", frames), ("ros2", ros2)) if section is not None}
+    return prepare_on_loopback(tmp_path, port, "looptest", **optional, zenoh={"connect": list(connect)},
+                               daemon={"status_period_s": 0.25, **daemon})
 
 
 def start_daemon(prepared, script, notifier=None):

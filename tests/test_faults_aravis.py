@@ -15,8 +15,8 @@ import threading
 import pytest
 from helpers import wait_until
 
-from bench.soak import make_prepared
 from cubeloc.net import free_port
+from daemon.preflight import prepare_on_loopback
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
 from drivers.aravis_camera import AravisCamera
@@ -87,7 +87,8 @@ def thread_names() -> list[str]:
 def test_incomplete_buffers_and_usb_unplug_at_the_aravis_boundary(tmp_path, monkeypatch):
     monkeypatch.setenv("CUBELOC_LOCK_DIR", str(tmp_path / "locks"))
     fake = GvFake("GV08").start()
-    prepared = make_prepared(tmp_path, free_port(), "aravisfaults", width=1280, height=1024)
+    prepared = prepare_on_loopback(tmp_path, free_port(), "aravisfaults", camera={"width": 1280, "height": 1024},
+                                   logging={"level": "warning"})
     config = prepared.config.model_copy(update={
         "camera": prepared.config.camera.model_copy(update={
             "source": "aravis:127.0.0.1", "exposure_us": 5000.0, "frame_rate_hz": 20.0, "frame_timeout_s": 0.5}),

@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 import structlog
 
-from bench.soak import make_prepared, quaternion_angle_deg
 from cubeloc.net import free_port
 from daemon.capture import STAMP_RESTART_FRAMES
+from daemon.preflight import prepare_on_loopback
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
 from fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
+from positioning.geometry import quaternion_angle_deg
 
 FPS = 30.0
 WRONG_POSITION_M = 0.02
@@ -97,7 +98,8 @@ def run(tmp_path_factory):
 
     camera._inject = inject
     port = free_port()
-    prepared = make_prepared(tmp_path_factory.mktemp("faults"), port, "faults", width=1280, height=1024)
+    prepared = prepare_on_loopback(tmp_path_factory.mktemp("faults"), port, "faults",
+                                   camera={"width": 1280, "height": 1024}, logging={"level": "warning"})
     config = prepared.config.model_copy(update={
         "camera": prepared.config.camera.model_copy(update={"frame_timeout_s": 0.3}),
         "daemon": prepared.config.daemon.model_copy(update={"status_period_s": 0.2, "timeout_streak": 3}),

@@ -18,8 +18,8 @@ import pytest
 import structlog
 from helpers import ROUTER, end_process, helper_process, wait_until
 
-from bench.soak import make_prepared
 from cubeloc.net import free_port
+from daemon.preflight import prepare_on_loopback
 from daemon.sdnotify import SystemdNotifier
 from daemon.service import Daemon
 from fakes.faulty import CyclingCamera, FaultyCamera, orbit_frames
@@ -60,7 +60,8 @@ class RunningDaemon:
         images, poses = orbit_frames(6, room=False)
         self.camera = CyclingCamera(images, poses, fps=FPS, name="zenoh")
         port = free_port()
-        prepared = make_prepared(tmp_path, port, "zfault", width=1280, height=1024)
+        prepared = prepare_on_loopback(tmp_path, port, "zfault", camera={"width": 1280, "height": 1024},
+                                       logging={"level": "warning"})
         config = prepared.config.model_copy(update={
             "zenoh": prepared.config.zenoh.model_validate({"multicast_scouting": False, **zenoh_settings}),
             "daemon": prepared.config.daemon.model_copy(update={"status_period_s": 0.25}),

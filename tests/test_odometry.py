@@ -130,7 +130,7 @@ def test_the_map_pose_and_the_wheels_motion_are_combined_by_their_covariances():
 def test_the_simulated_odometry_is_as_wrong_as_it_says():
     """spin_in_place's base turns on the spot (the camera 0.2 m ahead of the axis): its
     odometry turns 1 % too far plus 0.2 deg/s, and drives nearly nowhere."""
-    from bench.odometry import mount_of
+    from fakes.odometry import mount_of
     from fakes.trajectories import make_trajectory, trajectory_at
 
     xyz, quaternion = mount_of(make_trajectory("spin_in_place", 22.0)[0].T_world_camera)

@@ -97,7 +97,7 @@ def test_each_map_pose_goes_through_the_wheels_relative_motion_factor():
     factor's combination of the map's pose and the wheels' motion since the last pose
     (``OdometryPrior.fuse``, measured in tests/test_odometry.py; on full-resolution
     blank_wall it took the prior from 531 to 16.8 mm RMS: python -m bench odometry)."""
-    from bench.odometry import mount_of
+    from fakes.odometry import mount_of
     from positioning.tracking.odometry import OdometryPrior
 
     calls = []

@@ -8,9 +8,8 @@ import numpy as np
 from helpers import half_resolution
 from test_tracking_scenarios import SYNC, score_results
 
-from bench.odometry import mount_of
 from drivers.sequence import read_image, read_sequence_index
-from fakes.odometry import simulate_odometry
+from fakes.odometry import mount_of, simulate_odometry
 from fakes.sequence import write_synthetic_sequence
 from fakes.trajectories import make_trajectory
 from positioning.estimator import PoseSource, PoseState

@@ -16,14 +16,15 @@ import numpy as np
 import pytest
 from helpers import half_resolution
 
-from bench.common import in_loop_options, track_results
+from daemon.replay import track_results
 from fakes.lenses import lens_calibration
 from fakes.sequence import write_synthetic_sequence
 from positioning.estimator import PoseSource, PoseState
 from positioning.evaluation import score_estimates
+from positioning.tracking.processor import ProcessorOptions
 from positioning.trajectory_io import read_tum
 
-SYNC = in_loop_options()
+SYNC = ProcessorOptions.in_frame_loop()
 
 
 def replay(tmp_path_factory, name: str, seconds: float | None = None, seed: int = 11, calibration=None,

@@ -62,6 +62,14 @@ class ProcessorOptions:
     # this many frames tracked on from it in a row (a wrong one is worse than none)
     boot_verify_frames: int = 3
 
+    @classmethod
+    def in_frame_loop(cls) -> ProcessorOptions:
+        """The defaults with bundle adjustment in the frame loop instead of its worker
+        thread: every replay of the same frames gives the same poses (tests, benchmarks)."""
+        options = cls()
+        bundle = dataclasses.replace(options.tracker.bundle, background=False)
+        return dataclasses.replace(options, tracker=dataclasses.replace(options.tracker, bundle=bundle))
+
 
 class TrackingProcessor:
     def __init__(self, target: Target, calibration: CameraCalibration,
