@@ -7,8 +7,12 @@ exit code 2, before a camera or a Zenoh session is opened.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import structlog
 
 from calib.camera_info import CameraCalibration, read_camera_info
 from cubeloc.errors import ConfigError
@@ -17,6 +21,12 @@ from daemon.config import Config
 from daemon.zenoh_session import build_zenoh_config
 from positioning.estimator import FrameProcessor
 from positioning.target import Target, combine_targets, load_target
+
+if TYPE_CHECKING:
+    from positioning.tracking.map import Map
+    from positioning.tracking.odometry import OdometryBuffer, OdometryPrior
+
+log = structlog.get_logger()
 
 
 @dataclass(frozen=True)
@@ -97,10 +107,14 @@ def combined_target(config: Config) -> Target:
     return combine_targets(primary, others)
 
 
-def make_processor(prepared: Prepared) -> FrameProcessor:
+def make_processor(prepared: Prepared, odometry: OdometryBuffer | None = None,
+                   start_map: Callable[[], Map | None] | None = None) -> FrameProcessor:
     """The frame processor the loop calls (positioning/ chooses how poses are made):
     the tracker (``positioning.mode = "tracker"``, the default) or the single-frame target
-    pose (``"target"``). Both take the same face and residual limits."""
+    pose (``"target"``). Both take the same face and residual limits. The tracker's only:
+    ``odometry``, the wheels' samples (``[odometry]``, as ``odometry_prior`` makes them its
+    motion prior), and ``start_map``, where a saved map comes from (``[map] file``, loaded
+    again at every reset). This is the one place a processor is put together."""
     from positioning.target_pose import PoseOptions
 
     options = prepared.config.positioning
@@ -117,8 +131,24 @@ def make_processor(prepared: Prepared) -> FrameProcessor:
         tracker = replace(ProcessorOptions().tracker, loop_closure=options.loop_closure)
         if prepared.config.map.file is not None:  # a map to keep: more keyframes than the tracker's own 40
             tracker = replace(tracker, max_keyframes=prepared.config.map.keyframes)
-        return TrackingProcessor(prepared.target, prepared.calibration,
-                                 ProcessorOptions(pose=pose_options, tracker=tracker))
+        processor = TrackingProcessor(prepared.target, prepared.calibration,
+                                      ProcessorOptions(pose=pose_options, tracker=tracker),
+                                      None if odometry is None else odometry_prior(prepared.config, odometry))
+        if start_map is not None:
+            processor.start_from_map(start_map)
+        return processor
     from positioning.single_frame import TargetPoseProcessor
 
+    if odometry is not None:
+        log.warning("odometry is only used by the tracker (positioning.mode = \"tracker\")")
     return TargetPoseProcessor(prepared.target, prepared.calibration, pose_options)
+
+
+def odometry_prior(config: Config, odometry: OdometryBuffer) -> OdometryPrior:
+    """The wheels' samples as the tracker takes them: through the camera's mount on the
+    base and the floor's up (``[frames]``), as its motion prior or only as the bridge
+    while it has no pose (``[odometry] as_prior``)."""
+    from positioning.tracking.odometry import OdometryPrior
+
+    frames = config.frames.robot_frames()
+    return OdometryPrior(odometry, frames.T_base_camera, frames.up_in_target, as_prior=config.odometry.as_prior)

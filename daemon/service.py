@@ -41,7 +41,6 @@ from daemon.zenoh_session import ZenohUnreachable, open_session
 from drivers.base import Camera, CameraSettings
 from positioning.estimator import FrameProcessor
 from positioning.frames import SpreadCorrection
-from positioning.tracking.odometry import OdometryPrior
 
 log = structlog.get_logger()
 
@@ -72,8 +71,9 @@ class Daemon:
         self._odometry_in: OdometryInput | None = None
         self._map_odom = collections.Counter(published=0, no_odometry=0)  # map -> odom, per frame with a pose
         self.map_store: MapStore | None = None
-        self.processor = self._with_map(self._with_odometry(
-            processor if processor is not None else make_processor(prepared)), prepared)
+        if processor is None:
+            processor, self.map_store = self._processor(prepared)
+        self.processor = processor
         self.stats = LoopStats()
         self.slot = LatestFrameSlot()
         camera = self.config.camera
@@ -136,23 +136,14 @@ class Daemon:
             raise self.capture.failure
         return 0
 
-    def _with_odometry(self, processor: FrameProcessor) -> FrameProcessor:
-        """The processor, its tracker given the odometry (the target-only mode has no use for it)."""
-        tracker = getattr(processor, "tracker", None)
-        if self.odometry is not None and tracker is not None:
-            frames = self.config.frames.robot_frames()
-            tracker.odometry = OdometryPrior(self.odometry, frames.T_base_camera, frames.up_in_target,
-                                             as_prior=self.config.odometry.as_prior)
-        elif self.odometry is not None:
-            log.warning("odometry is only used by the tracker (positioning.mode = \"tracker\")")
-        return processor
-
-    def _with_map(self, processor: FrameProcessor, prepared: Prepared) -> FrameProcessor:
-        """The processor started from ``[map] file`` (loaded again at every reset)."""
-        if self.config.map.file is not None and hasattr(processor, "start_from_map"):
-            self.map_store = MapStore(self.config.map, prepared.calibration, prepared.target)
-            processor.start_from_map(self.map_store.load)
-        return processor
+    def _processor(self, prepared: Prepared) -> tuple[FrameProcessor, MapStore | None]:
+        """The processor for ``prepared`` (``preflight.make_processor``, with the wheels'
+        samples when ``[odometry]`` is on) and the store of ``[map] file`` it starts from
+        (the tracker's only)."""
+        store = None
+        if self.config.map.file is not None and self.config.positioning.mode == "tracker":
+            store = MapStore(self.config.map, prepared.calibration, prepared.target)
+        return make_processor(prepared, self.odometry, None if store is None else store.load), store
 
     def _frame_sinks(self) -> tuple:
         """What sees every processed frame: the Foxglove viewer, the map's periodic save."""
@@ -305,13 +296,14 @@ class Daemon:
         old_store, old_prepared = self.map_store, self.prepared
         try:
             prepared = read_positioning_files(self.config)
-            processor = self._with_map(self._with_odometry(make_processor(prepared)), prepared)
+            processor, store = self._processor(prepared)
         except CubelocError as exc:
             self._reloads["failed"] += 1
             self._reloads["last"] = {"ok": False, "stamp_ns": time.time_ns(), "detail": str(exc)}
             log.error("reload refused: the files in use stay", error=str(exc), calibration=str(config.calibration),
                       target=str(config.target))
             return
+        self.map_store = store
         self._loop.swap_processor(processor, prepared.calibration.size,
                                   self._map_handover(old_store, old_prepared, prepared))
         self.processor, self.prepared = processor, prepared

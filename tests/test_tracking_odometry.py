@@ -23,10 +23,9 @@ SECONDS = 26.0
 
 
 def _run(sequence, truth, odometry_rows, mount):
-    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC)
     buffer = OdometryBuffer()
-    if odometry_rows is not None:
-        processor.tracker.odometry = OdometryPrior(buffer, mount)
+    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC,
+                                  None if odometry_rows is None else OdometryPrior(buffer, mount))
     rows = odometry_rows or []
     k, results = 0, []
     try:

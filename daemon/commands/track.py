@@ -76,6 +76,7 @@ def run(args) -> int:
     from daemon.config import Config, load_config
     from daemon.logs import configure_logging
     from daemon.messages import UnpublishablePose, encode, pose_payload
+    from daemon.preflight import odometry_prior
     from drivers.sequence import read_image, read_sequence_index
     from positioning.evaluation import absolute_trajectory_error
     from positioning.target import load_target
@@ -105,13 +106,14 @@ def run(args) -> int:
     options = replace(defaults, tracker=replace(
         defaults.tracker, max_keyframes=keyframes, loop_closure=config.positioning.loop_closure,
         bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
-    processor = TrackingProcessor(target, calibration, options)
+    odometry = _odometry(args, config) if args.odometry else None
+    processor = TrackingProcessor(target, calibration, options,
+                                  None if odometry is None else odometry_prior(config, odometry.buffer))
     if args.map:
         from positioning.tracking.map_file import load_map
 
         world_map, _ = load_map(Path(args.map), calibration, target)  # a bad file stops here, with one line
         processor.start_from_map(lambda: world_map)
-    odometry = _odometry(args, config, processor) if args.odometry else None
     recording = None
     if args.mcap:
         from daemon.viewer import McapRecording
@@ -224,15 +226,10 @@ class _OdometryReplay:
             self._next += 1
 
 
-def _odometry(args, config, processor) -> _OdometryReplay:
-    from positioning.tracking.odometry import OdometryPrior
-
-    buffer = config.odometry.buffer()
-    replay = _OdometryReplay(Path(args.odometry), buffer)  # a bad file stops here, with one line
+def _odometry(args, config) -> _OdometryReplay:
+    """The odometry file's replay into a buffer as ``[odometry]`` makes one."""
+    replay = _OdometryReplay(Path(args.odometry), config.odometry.buffer())  # a bad file stops here, with one line
     if not config.frames.enabled:
         print("warning: no [frames.base_from_camera] (--config): the camera is taken for the robot's base",
               file=sys.stderr)
-    frames = config.frames.robot_frames()
-    processor.tracker.odometry = OdometryPrior(buffer, frames.T_base_camera, frames.up_in_target,
-                                               as_prior=config.odometry.as_prior)
     return replay

@@ -41,6 +41,7 @@ from positioning.target import Target
 from positioning.target_pose import PoseOptions, count_planes
 from positioning.tracking.features import KltFrontEnd
 from positioning.tracking.map import Map
+from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.relocalise import Relocaliser
 from positioning.tracking.tracker import Tracker
@@ -73,7 +74,8 @@ class ProcessorOptions:
 
 class TrackingProcessor:
     def __init__(self, target: Target, calibration: CameraCalibration,
-                 options: ProcessorOptions | None = None) -> None:
+                 options: ProcessorOptions | None = None, odometry: OdometryPrior | None = None) -> None:
+        """``odometry``: the robot's wheel odometry, the tracker's motion prior (None: vision alone)."""
         self.target = target
         self.calibration = calibration
         self.options = options or ProcessorOptions()
@@ -92,7 +94,7 @@ class TrackingProcessor:
             # apart by the data (target_pose._separated_plane), and the map starts on them.
             tracker_options = dataclasses.replace(
                 tracker_options, init=dataclasses.replace(tracker_options.init, min_planes=planes))
-        self.tracker = Tracker(calibration, tracker_options)
+        self.tracker = Tracker(calibration, tracker_options, odometry)
         self.front_end = KltFrontEnd(self.options.tracker.features, ahead_mask(calibration))
         self.relocaliser = Relocaliser(calibration, self.options.tracker)
         self._target_corners = np.concatenate([t.corners for t in target.tags])

@@ -69,14 +69,15 @@ log = structlog.get_logger()
 
 
 class Tracker(MapBeginning, LoopClosure):
-    def __init__(self, calibration: CameraCalibration, options: TrackerOptions | None = None) -> None:
+    def __init__(self, calibration: CameraCalibration, options: TrackerOptions | None = None,
+                 odometry: OdometryPrior | None = None) -> None:
         self.calibration = calibration
         self.options = options or TrackerOptions()
         self.fx = calibration.fx
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: concurrent.futures.Future | None = None
         self.bundle_runs: list[bundle.BundleSolution] = []  # the last few, for benchmarks and tests
-        self.odometry: OdometryPrior | None = None  # wheel odometry, when the robot gives it (kept on reset)
+        self.odometry = odometry  # wheel odometry, when the robot gives it (kept on reset)
         self.motion = MotionModel(self.options)
         self.reset()
 
