@@ -128,7 +128,7 @@ class RayHold:
     def _from_base(self, covariance: np.ndarray) -> np.ndarray:
         """``covariance``, of the pose held since the base (the rays' directions, the motion
         from it), plus the base pose's own: a hold carries on from where the base was, so it
-        is off by at least as much (a hold from a target pose 160 mm unsure had claimed 11 mm)."""
+        is off by at least as much (docs/tracker.md, "Held on rays")."""
         return covariance if self.base_covariance is None else covariance + self.base_covariance
 
 

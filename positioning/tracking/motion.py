@@ -75,8 +75,7 @@ class MotionModel:
         ``own`` is the pose's own covariance (its measurement's, the map's drift apart): a
         velocity measured between two poses is as unsure as their own covariances over the
         step allow. A ``held`` pose followed the prediction, so its step measures nothing
-        new: the velocity's covariance stays (from a held pose 1.6 m off to a target pose,
-        the step is 48 m/s, and the coast after it 1.7 m off had claimed 0.11 m)."""
+        new: the velocity's covariance stays (docs/tracker.md, "Coasting")."""
         dt = (stamp_ns - self.stamp) / 1e9
         own = None if own is None else np.asarray(own, np.float64)[:3, :3]
         previous, self.own = self.own, own
