@@ -206,8 +206,9 @@ class Tracker(MapBeginning, LoopClosure):
         self.lost = False
         if held is None:
             self._hold.end()
-        # the rays start again on a measured pose, with what that pose's own measurement says of it
-        own = None if held is not None else (trusted.published_covariance if trusted is not None else covariance)
+        # this pose's own covariance (the target's, PnP's or the hold's; the drift apart): what
+        # rays started on it, and a velocity measured to it, are worth
+        own = trusted.published_covariance if trusted is not None else covariance
         self._hold.rebase(pose if held is None else None, tracks.ids, xn, own)
         sigma = position_sigma(trusted.covariance if trusted is not None else covariance)
         self.motion.covariance = estimate.covariance
@@ -215,8 +216,7 @@ class Tracker(MapBeginning, LoopClosure):
         # and out of a target pose too uncertain to anchor are its error: the velocity stays
         self.motion.after_relocalisation = self.motion.after_relocalisation or forced
         noisy = trusted is not None and not self._anchors(trusted)
-        self.motion.update(pose, stamp_ns, noisy=noisy, own=covariance if own is None else own,
-                           held=held is not None)
+        self.motion.update(pose, stamp_ns, noisy=noisy, own=own, held=held is not None)
         if held is None and not noisy:
             self.motion.measured = (pose, stamp_ns)
         frame = replace(frame, pose=pose)
