@@ -40,6 +40,7 @@ from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
 from positioning.target_pose import PoseOptions, count_planes
 from positioning.tracking.features import KltFrontEnd
+from positioning.tracking.hold import largest_position_sigma
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
@@ -252,7 +253,11 @@ class TrackingProcessor:
 
     def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult, frame: TrackedFrame
                     ) -> tuple[FrameResult, TrackedFrame]:
-        found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting)
+        # taken only where it is surer than the pose this frame has without it (held,
+        # bridged, the target too unsure to anchor; anything when there is none)
+        without = lost.estimate.covariance if lost.estimate is not None else None
+        found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting,
+                                            surer_than_m=None if without is None else largest_position_sigma(without))
         if found is None:
             return lost, frame
         self.front_end.adopt(found.point_ids, found.pixels)
@@ -272,8 +277,10 @@ class TrackingProcessor:
         candidates = self.tracker.loop_keyframes(frame)
         if not candidates:
             return tracked, frame
+        own = tracked.estimate.covariance
         found = self.relocaliser.relocalise(image, self.tracker.map, among=candidates,
-                                            excluding={int(t) for t in self.front_end.ids})
+                                            excluding={int(t) for t in self.front_end.ids},
+                                            surer_than_m=None if own is None else largest_position_sigma(own))
         if found is None:
             return tracked, frame
         reference = max(candidates, key=lambda kf: np.isin(found.point_ids, kf.descriptor_ids).sum())
