@@ -38,7 +38,6 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -247,12 +246,12 @@ def _live_section(paper: Path, paper_30: Path, live_runs: int) -> str:
 
 
 def _options(**bundle_changes):
-    """The processor's default options with these bundle adjustment options changed."""
-    from positioning.tracking.processor import ProcessorOptions
+    """The daemon's options with the default configuration, these bundle adjustment
+    options changed."""
+    from daemon.config import Config
+    from daemon.preflight import processor_options
 
-    defaults = ProcessorOptions()
-    bundle = replace(defaults.tracker.bundle, **bundle_changes)
-    return replace(defaults, tracker=replace(defaults.tracker, bundle=bundle))
+    return processor_options(Config(), **bundle_changes)
 
 
 def _peak_rss_mb() -> float:

@@ -23,6 +23,8 @@ from positioning.estimator import FrameProcessor
 from positioning.target import Target, combine_targets, load_target
 
 if TYPE_CHECKING:
+    from positioning.target_pose import PoseOptions
+    from positioning.tracking import ProcessorOptions
     from positioning.tracking.map import Map
     from positioning.tracking.odometry import OdometryBuffer, OdometryPrior
 
@@ -107,6 +109,33 @@ def combined_target(config: Config) -> Target:
     return combine_targets(primary, others)
 
 
+def pose_options(config: Config) -> PoseOptions:
+    """The target pose's face and residual limits of ``[positioning]``."""
+    from positioning.target_pose import PoseOptions
+
+    positioning = config.positioning
+    return PoseOptions(allow_two_faces=positioning.allow_two_faces, allow_one_face=positioning.allow_one_face,
+                       max_reproj_rms_px=positioning.max_reproj_rms_px)
+
+
+def processor_options(config: Config, max_keyframes: int | None = None, **bundle_changes) -> ProcessorOptions:
+    """The tracker's options as ``config`` sets them (``pose_options``, ``[positioning]
+    loop_closure``), with at most ``max_keyframes`` keyframes (None: the tracker's own) and
+    bundle adjustment's options changed by ``bundle_changes`` (``background=False``: in
+    the frame loop, every replay alike). The daemon, ``cubeloc track`` and the benchmarks
+    all take their options from here."""
+    from dataclasses import replace
+
+    from positioning.tracking import ProcessorOptions
+
+    defaults = ProcessorOptions()
+    tracker = replace(defaults.tracker, loop_closure=config.positioning.loop_closure,
+                      bundle=replace(defaults.tracker.bundle, **bundle_changes))
+    if max_keyframes is not None:
+        tracker = replace(tracker, max_keyframes=max_keyframes)
+    return replace(defaults, pose=pose_options(config), tracker=tracker)
+
+
 def make_processor(prepared: Prepared, odometry: OdometryBuffer | None = None,
                    start_map: Callable[[], Map | None] | None = None) -> FrameProcessor:
     """The frame processor the loop calls (positioning/ chooses how poses are made):
@@ -115,25 +144,14 @@ def make_processor(prepared: Prepared, odometry: OdometryBuffer | None = None,
     ``odometry``, the wheels' samples (``[odometry]``, as ``odometry_prior`` makes them its
     motion prior), and ``start_map``, where a saved map comes from (``[map] file``, loaded
     again at every reset). This is the one place a processor is put together."""
-    from positioning.target_pose import PoseOptions
+    config = prepared.config
+    if config.positioning.mode == "tracker":
+        from positioning.tracking import TrackingProcessor
 
-    options = prepared.config.positioning
-    pose_options = PoseOptions(
-        allow_two_faces=options.allow_two_faces,
-        allow_one_face=options.allow_one_face,
-        max_reproj_rms_px=options.max_reproj_rms_px,
-    )
-    if options.mode == "tracker":
-        from dataclasses import replace
-
-        from positioning.tracking import ProcessorOptions, TrackingProcessor
-
-        tracker = replace(ProcessorOptions().tracker, loop_closure=options.loop_closure)
-        if prepared.config.map.file is not None:  # a map to keep: more keyframes than the tracker's own 40
-            tracker = replace(tracker, max_keyframes=prepared.config.map.keyframes)
-        processor = TrackingProcessor(prepared.target, prepared.calibration,
-                                      ProcessorOptions(pose=pose_options, tracker=tracker),
-                                      None if odometry is None else odometry_prior(prepared.config, odometry))
+        # a map to keep: more keyframes than the tracker's own 40
+        keyframes = config.map.keyframes if config.map.file is not None else None
+        processor = TrackingProcessor(prepared.target, prepared.calibration, processor_options(config, keyframes),
+                                      None if odometry is None else odometry_prior(config, odometry))
         if start_map is not None:
             processor.start_from_map(start_map)
         return processor
@@ -141,7 +159,7 @@ def make_processor(prepared: Prepared, odometry: OdometryBuffer | None = None,
 
     if odometry is not None:
         log.warning("odometry is only used by the tracker (positioning.mode = \"tracker\")")
-    return TargetPoseProcessor(prepared.target, prepared.calibration, pose_options)
+    return TargetPoseProcessor(prepared.target, prepared.calibration, pose_options(config))
 
 
 def odometry_prior(config: Config, odometry: OdometryBuffer) -> OdometryPrior:

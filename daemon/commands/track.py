@@ -66,7 +66,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from dataclasses import replace
 
     import structlog
 
@@ -76,11 +75,11 @@ def run(args) -> int:
     from daemon.config import Config, load_config
     from daemon.logs import configure_logging
     from daemon.messages import UnpublishablePose, encode, pose_payload
-    from daemon.preflight import odometry_prior
+    from daemon.preflight import odometry_prior, processor_options
     from drivers.sequence import read_image, read_sequence_index
     from positioning.evaluation import absolute_trajectory_error
     from positioning.target import load_target
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from positioning.tracking.processor import TrackingProcessor
     from positioning.trajectory_io import StampedPose, read_tum, write_tum
 
     configure_logging("warning", stream=sys.stderr)  # stdout is for the summary
@@ -98,14 +97,11 @@ def run(args) -> int:
     groundtruth_path = Path(args.sequence) / "groundtruth.tum"
     groundtruth = read_tum(groundtruth_path) if groundtruth_path.is_file() else None
 
-    defaults = ProcessorOptions()
     keyframes = args.map_keyframes if args.map_keyframes is not None else (
-        MAP_KEYFRAMES if args.save_map or args.map else defaults.tracker.max_keyframes)
-    if keyframes < 2:
+        MAP_KEYFRAMES if args.save_map or args.map else None)
+    if keyframes is not None and keyframes < 2:
         raise InputFileError(f"--map-keyframes {keyframes}: at least 2")
-    options = replace(defaults, tracker=replace(
-        defaults.tracker, max_keyframes=keyframes, loop_closure=config.positioning.loop_closure,
-        bundle=replace(defaults.tracker.bundle, background=bool(args.background_ba))))
+    options = processor_options(config, keyframes, background=bool(args.background_ba))
     odometry = _odometry(args, config) if args.odometry else None
     processor = TrackingProcessor(target, calibration, options,
                                   None if odometry is None else odometry_prior(config, odometry.buffer))
