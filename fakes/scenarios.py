@@ -67,8 +67,10 @@ TIMING = {
 }
 
 
-def _spline(rows: list[list[float]], times: np.ndarray) -> np.ndarray:
-    keyframes = np.array(rows, dtype=np.float64)
+def clamped_spline(rows, times: np.ndarray) -> np.ndarray:
+    """Clamped cubic spline (zero velocity at both ends) through ``rows`` of (t, values...),
+    evaluated at ``times`` (held past the ends): every scripted trajectory's poses."""
+    keyframes = np.asarray(rows, dtype=np.float64)
     spline = CubicSpline(keyframes[:, 0], keyframes[:, 1:], axis=0, bc_type="clamped")
     return spline(np.clip(times, keyframes[0, 0], keyframes[-1, 0]))
 
@@ -140,7 +142,7 @@ def _turn_after_init(times: np.ndarray, seconds: float) -> list[Transform]:
         radius = 2.6 + 0.3 * np.sin(3 * azimuth)
         rows.append([6.0 + fraction * (lap_end - 6.0), *_polar(azimuth, radius), azimuth + 60 * DEG, 10 * DEG])
     rows += _back_on_the_cube(rows, a0 + 340 * DEG, 2.2, seconds)  # and back: face the cube again
-    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
+    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in clamped_spline(rows, times)]
 
 
 def spin(times: np.ndarray, seconds: float, lever_m: float, rate_deg_s: float) -> list[Transform]:
@@ -151,7 +153,7 @@ def spin(times: np.ndarray, seconds: float, lever_m: float, rate_deg_s: float) -
     x1, y1 = _polar(a0 + 6 * DEG, r0)
     yaw0, pitch0 = _look_at_cube(*START)
     yaw1, pitch1 = _look_at_cube(x1, y1)
-    init = _spline([[0.0, *START, yaw0, pitch0], [2.5, x1, y1, yaw1, pitch1]], times)
+    init = clamped_spline([[0.0, *START, yaw0, pitch0], [2.5, x1, y1, yaw1, pitch1]], times)
     turn_s = min(seconds - 4.0, 720.0 / rate_deg_s + 0.5)
     turns = max(1, int(np.floor(rate_deg_s * (turn_s - 0.5) / 360.0)))
     total = turns * 2 * np.pi
@@ -200,7 +202,7 @@ def _passers_by(times: np.ndarray, seconds: float) -> list[Transform]:
     """A slow drive (0.15 m/s) round the cube looking at it for 10 s, a turn 80 deg away
     over 5 s driving on, then back to the cube for the last 3 s."""
     a0, r0 = _start_rows()
-    azimuth = _spline([[0.0, a0], [seconds - 3.0, a0 + 120 * DEG], [seconds, a0 + 120 * DEG]], times)[:, 0]
+    azimuth = clamped_spline([[0.0, a0], [seconds - 3.0, a0 + 120 * DEG], [seconds, a0 + 120 * DEG]], times)[:, 0]
     away = 80 * DEG * (_smoothstep((times - 10.0) / 5.0) - _smoothstep((times - (seconds - 8.0)) / 5.0))
     poses = []
     for a, offset in zip(azimuth, away, strict=True):
@@ -246,7 +248,7 @@ def _long_lap(times: np.ndarray, seconds: float) -> list[Transform]:
         tilt = (12 + 6 * np.sin(3 * fraction * np.pi)) * DEG
         rows.append([3.0 + fraction * (lap_end - 3.0), *_polar(azimuth, radius), heading, tilt])
     rows += _back_on_the_cube(rows, a0 + 345 * DEG, 2.2, seconds)
-    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
+    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in clamped_spline(rows, times)]
 
 
 def _laps(times: np.ndarray, seconds: float, laps: int = 3) -> list[Transform]:
@@ -268,7 +270,7 @@ def _laps(times: np.ndarray, seconds: float, laps: int = 3) -> list[Transform]:
         tilt = (12 + 6 * np.sin(3 * within * np.pi) + 3 * offset) * DEG
         rows.append([3.0 + fraction * (lap_end - 3.0), *_polar(azimuth, radius), heading, tilt])
     rows += _back_on_the_cube(rows, a0 + (laps * 360 - 15) * DEG, 2.2, seconds)
-    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in _spline(rows, times)]
+    return [_camera(x, y, yaw, pitch) for x, y, yaw, pitch in clamped_spline(rows, times)]
 
 
 MAKERS = {

@@ -29,10 +29,10 @@ velocity at the ends), or closed-form curves. Stamps start at ``EPOCH_NS``.
 from __future__ import annotations
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from cubeloc.errors import CubelocError
 from fakes import scenarios
+from fakes.scenarios import clamped_spline
 from positioning.geometry import Transform, look_at
 from positioning.trajectory_io import StampedPose
 
@@ -61,12 +61,6 @@ def _heading_to(position: np.ndarray, point: np.ndarray) -> tuple[float, float]:
     """Yaw and pitch that look from ``position`` at ``point``."""
     d = np.asarray(point, dtype=np.float64) - position
     return float(np.arctan2(d[1], d[0])), float(np.arctan2(-d[2], np.hypot(d[0], d[1])))
-
-
-def _spline(keyframes: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Clamped cubic spline through rows (t, values...), evaluated at ``times`` (held past the end)."""
-    spline = CubicSpline(keyframes[:, 0], keyframes[:, 1:], axis=0, bc_type="clamped")
-    return spline(np.clip(times, keyframes[0, 0], keyframes[-1, 0]))
 
 
 def _static(times: np.ndarray, seconds: float) -> list[Transform]:
@@ -101,7 +95,7 @@ def _paper(times: np.ndarray, seconds: float) -> list[Transform]:
         [26.0, 0.6, 3.1, 180 * deg],
         [30.0, -0.5, 3.0, 190 * deg],
     ])
-    values = _spline(keyframes, times)
+    values = clamped_spline(keyframes, times)
     return [
         camera_from_yaw_pitch(np.array([x, y, START_POSITION[2]]), yaw, pitch) for x, y, yaw in values
     ]
@@ -127,7 +121,7 @@ def _room_walk(times: np.ndarray, seconds: float) -> list[Transform]:
     rows.append([1.0, end_azimuth, start_radius, yaw0 + 2 * np.pi, pitch0])
     keyframes = np.array(rows)
     keyframes[:, 0] *= seconds
-    values = _spline(keyframes, times)
+    values = clamped_spline(keyframes, times)
     poses = []
     for azimuth, radius, yaw, pitch in values:
         position = np.array([radius * np.cos(azimuth), radius * np.sin(azimuth), START_POSITION[2]])
@@ -143,8 +137,8 @@ def _spin(times: np.ndarray, seconds: float) -> list[Transform]:
     side = np.array([-np.sin(yaw0), np.cos(yaw0), 0.0])  # horizontal, across the line of sight
     stop = START_POSITION + 0.4 * side
     yaw1, pitch1 = _heading_to(stop, np.zeros(3))
-    slide = _spline(np.array([[0.0, *START_POSITION, yaw0, pitch], [4.0, *stop, yaw1, pitch1]]), times)
-    turn = _spline(np.array([[4.0, 0.0], [seconds - 2.0, 2 * np.pi]]), times)[:, 0]
+    slide = clamped_spline(np.array([[0.0, *START_POSITION, yaw0, pitch], [4.0, *stop, yaw1, pitch1]]), times)
+    turn = clamped_spline(np.array([[4.0, 0.0], [seconds - 2.0, 2 * np.pi]]), times)[:, 0]
     poses = []
     for t, row, extra in zip(times, slide, turn, strict=True):
         position, yaw, tilt = (row[:3], row[3], row[4]) if t < 4.0 else (stop, yaw1 + extra, pitch1)
