@@ -15,8 +15,8 @@ class AlignmentOptions:
     """Each track re-aligned to the patch it was born on (patch_alignment.py)."""
 
     radius_px: int = 10  # the template is (2r+1)^2 pixels, as KLT's 21 x 21 window
-    # Gauss-Newton steps per frame from where KLT ended (the warp carries on from the last
-    # frame, so little is left to do: 2 and 4 tracked alike, paper 20 s, 5 seeds)
+    # Gauss-Newton steps per frame from where KLT ended: the warp carries on from the last
+    # frame, so little is left to do
     iterations: int = 2
     min_correlation: float = 0.9  # normalised cross-correlation of the aligned patch
     max_shift_px: float = 2.0  # from where KLT ended
@@ -52,13 +52,10 @@ class InitOptions:
     min_parallax_deg: float = 1.0  # median rotation-compensated parallax A<->B
     max_reproj_px: float = 1.5  # a triangulated point must reproject within this in A and B
     min_point_parallax_deg: float = 0.5  # a single point's own parallax
-    # Before a map exists, a target pose this sure may start it (reference A and frame B),
-    # though keyframes after it anchor only from ``anchor_max_position_std_m``: behind a
-    # wide lens (f 450 px at 640x512) the cube's poses in agile swings were 5-10 mm sure
-    # and the map never started (80 % of frames with a pose, one 0.42 m off); with 8, 12 or
-    # 20 mm here 100 %, 3.4-4.6 mm RMS; the paper camera and the other lenses unchanged
-    # (python -m bench intrinsics). The whole anchor bound at 12 mm instead bent maps to
-    # less sure poses (VGA agile 2.4 -> 3.2 mm, wide turn 31 -> 38 mm).
+    # Before a map exists, a target pose this sure may start it (reference A and frame B):
+    # Algorithm 2's baseline makes its error small against the depths. Keyframes after it
+    # anchor only from the stricter ``anchor_max_position_std_m``, since an anchor bends the
+    # map to itself. (Measured behind a wide lens: docs/notes/2026-12-05-tracker-options.md.)
     max_position_std_m: float = 0.010
 
 
@@ -69,23 +66,17 @@ class BundleOptions:
     window_keyframes: int = 6
     # The newest anchored keyframes that share points with the window join it (free, with
     # the target's corners), so that after the target has left the view the first keyframes
-    # without it are adjusted together with keyframes the target holds. A background
-    # solution lands frames late on a live camera; with these the late one costs little
-    # (synthetic geometry, 6 seeds, solution 5 frames late: 5.8 -> 4.3 mm RMS ATE; 10
-    # frames: 8.7 -> 6.2 mm; in the frame loop 4.6 -> 4.2 mm).
+    # without it are adjusted together with keyframes the target holds, and a solution that
+    # lands frames late (the worker thread on a live camera) costs little.
     anchored_keyframes: int = 3
     # "schur": our Levenberg-Marquardt on the Schur complement (schur_lm.py); "scipy":
-    # SciPy's least_squares (trf, LSMR), the reference. Applied at once they are as
-    # accurate (paper 20 s, 5 seeds: 0.37-0.68 against 0.35-0.98 mm); applied 3 frames
-    # late ours is far better (0.52-0.91 against 2.85-4.03 mm), and live ours takes ~36 ms
-    # a window where SciPy's many small calls, waiting for the GIL, take 0.7-0.9 s.
+    # SciPy's least_squares (trf, LSMR), the reference: as accurate applied at once, far
+    # worse applied frames late, and ~20x slower live (python -m bench tracker).
     solver: Literal["schur", "scipy"] = "schur"
     # Levenberg damping floor of "schur", px^2 per m^2 or rad^2 (schur_lm.py): a step along
     # what no observation constrains costs this much, so the window cannot slide there (a
-    # turn on the camera's own axis leaves the points' scale about it unobserved; with no
-    # floor one window scaled every point 9x in 5 frames). 1 is a thousandth of what once
-    # held far points' depths against drifting tracks (1e3), and below what any observed
-    # direction carries.
+    # turn on the camera's own axis leaves the points' scale about it unobserved). It is
+    # below what any observed direction carries.
     min_damping: float = 1.0
     max_iterations: int = 10  # residual evaluations per robust round (SciPy max_nfev)
     robust_rounds: int = 2  # reweighting rounds (Huber weights from the last residuals)
@@ -93,8 +84,8 @@ class BundleOptions:
     max_residual_px: float = 2.0  # points erring more than this after BA are dropped...
     min_residual_px: float = 0.5  # ...or more than 3 robust sigmas of all, but never below this
     background: bool = True  # run in a worker thread (the daemon); False: in the frame loop
-    # The target's corners fit to ~0.08 px, KLT tracks to ~0.3 px over their life (measured on
-    # the synthetic camera): weights in inverse proportion keep the anchors in charge.
+    # The target's corners fit to ~0.08 px, KLT tracks to ~0.3 px over their life: weights in
+    # inverse proportion of those sigmas keep the anchors in charge.
     target_weight: float = 8.0
 
 
@@ -115,25 +106,19 @@ class TrackerOptions:
     keyframe_tracked_ratio: float = 0.8  # map points still tracked / at the last keyframe
     keyframe_min_points: int = 150  # fewer tracked map points: make a keyframe now
     keyframe_starving_points: int = 100  # fewer still: a keyframe on every frame (not every other)
-    # low enough that a camera walking forwards and turning keeps its map stocked (room_walk
-    # was lost at 1.5 deg); bundle adjustment then refines the depths with more views
+    # a point's parallax before it is triangulated: low enough that a camera walking forwards
+    # and turning keeps its map stocked; bundle adjustment then refines the depths with more views
     triangulation_min_parallax_deg: float = 0.7
-    # ...and while the map runs short (fewer than 40 map points tracked: a turn, driving
-    # straight at a wall), from this: a point of 0.3 deg has a depth some 2 % off where 0.7
-    # deg gives 1 %, but no point at all loses the map (turn_after_init at half resolution:
-    # 13 % of frames with a pose at 0.7 deg, 100 % with this). Taken more often they cost
-    # accuracy (full resolution: below 100 tracked, agile 9.9 and turn_after_init 7.2 mm;
-    # below 40, 2.7 and 2.8 mm; always, paper at half resolution 8.3 instead of 4.1 mm)
+    # ...and while the map runs short (fewer than this many map points tracked: a turn,
+    # driving straight at a wall): a point of 0.3 deg has a depth some 2 % off where 0.7 deg
+    # gives 1 %, but no point at all loses the map; taken more often they cost accuracy
     triangulation_starving_parallax_deg: float = 0.3
     triangulation_starving_points: int = 40
     triangulation_max_reproj_px: float = 2.0
     # Two keyframes triangulate only when their baseline is at least this many times the
     # combined standard deviation of their poses (each pose's own fit: target, PnP or
-    # relocalisation match), else against an older keyframe of the track that passes:
-    # blank_wall's camera, turning on the spot after a relocalisation, triangulated on
-    # 5-30 mm baselines between poses 9-21 mm uncertain and the map's scale came out 30 %
-    # wrong (0.7 m off within 6 s; 95 mm with this). 3 sigmas left a map short of points
-    # after a 25-point relocalisation (tests/test_tracking_images.py: 67 mm off, held).
+    # relocalisation match), else against an older keyframe of the track that passes: below
+    # it the poses' errors, not the parallax, would set the depths and so the map's scale
     triangulation_min_baseline_sigmas: float = 1.0
     # loop closure (Tracker.loop_keyframes / close_loop): a keyframe tracked on the map is
     # matched against keyframes made this long ago, this near, looking this close to the
@@ -159,11 +144,8 @@ class TrackerOptions:
     fuse_target_with_map: bool = False  # target visible: one pose from its corners and the map points
     max_motion_m: float = 0.5  # a tracker pose further than this from the prediction is refused
     # ...or turned further than this from it: the prediction is off by the change of turn
-    # rate within one frame, and 5 deg a frame is 50 deg/s at 10 fps. Behind the narrow lens
-    # (bench turns, 90 deg/s at 10 fps) PnP took a pose 7.7 deg from the prediction (1.2 deg
-    # from the truth) where the turn came round to the first turn's drifted points, and the
-    # track went on 16 deg and 0.7 m off: 254 -> 64 mm RMS with this; 3 deg also refused
-    # right poses at 18 deg a frame (76 against 84 % of frames with a pose)
+    # rate within one frame, and 5 deg a frame is 50 deg/s at 10 fps (a pose further off is a
+    # PnP on drifted points, not a turn)
     max_motion_deg: float = 5.0
     max_extrapolation_s: float = 0.5  # the motion model predicts no further ahead than this
     # too few map points in view (a turn on the spot): held on rays (pose_fit.py)
