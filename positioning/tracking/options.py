@@ -134,6 +134,11 @@ class TrackerOptions:
     loop_max_drift_share: float = 0.5  # ...whose drift (Drift.grown_m) is at most this share of this frame's
     loop_matches: int = 4  # ...and the map moved when this many matches within loop_window_s agree
     loop_window_s: float = 5.0
+    # ...each match that sure of the position: a closure corrects a drift of millimetres to
+    # centimetres, and the tracked pose's covariance (the drift model's bound) is far larger
+    # than the drift itself, so a match is not weighed against it (that made the laps worse:
+    # docs/notes/2026-12-05-relocalisation-when-surer.md)
+    loop_max_match_sigma_m: float = 0.01
     max_keyframes: int = 40  # older keyframes and the points only they saw are culled...
     loop_kept_keyframes: int = 60  # ...but these, spread widest over the area (Map.thin), with loop_closure
     # target

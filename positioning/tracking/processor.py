@@ -277,10 +277,9 @@ class TrackingProcessor:
         candidates = self.tracker.loop_keyframes(frame)
         if not candidates:
             return tracked, frame
-        own = tracked.estimate.covariance
         found = self.relocaliser.relocalise(image, self.tracker.map, among=candidates,
                                             excluding={int(t) for t in self.front_end.ids},
-                                            surer_than_m=None if own is None else largest_position_sigma(own))
+                                            surer_than_m=self.options.tracker.loop_max_match_sigma_m)
         if found is None:
             return tracked, frame
         reference = max(candidates, key=lambda kf: np.isin(found.point_ids, kf.descriptor_ids).sum())
