@@ -253,11 +253,16 @@ class TrackingProcessor:
 
     def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult, frame: TrackedFrame
                     ) -> tuple[FrameResult, TrackedFrame]:
-        # taken only where it is surer than the pose this frame has without it (held,
-        # bridged, the target too unsure to anchor; anything when there is none)
-        without = lost.estimate.covariance if lost.estimate is not None else None
+        # A frame with no pose takes it for what it is worth (its covariance says). Over a
+        # pose the frame has (held, bridged, the target too unsure to anchor) it must be as
+        # sure as the measured pose that one carries on from: the held and bridged poses'
+        # covariances bound what nothing measured, far above their errors, and are no
+        # measure of a relocalisation (docs/notes/2026-12-05-relocalisation-when-surer.md).
+        base = self.tracker.measured_covariance if lost.estimate is not None else None
+        if base is None and lost.estimate is not None:
+            base = lost.estimate.covariance
         found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting,
-                                            surer_than_m=None if without is None else largest_position_sigma(without))
+                                            surer_than_m=None if base is None else largest_position_sigma(base))
         if found is None:
             return lost, frame
         self.front_end.adopt(found.point_ids, found.pixels)
