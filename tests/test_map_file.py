@@ -25,7 +25,6 @@ from fakes.trajectories import trajectory_at
 from positioning.camera_model import project
 from positioning.geometry import Transform
 from positioning.target import make_cube
-from positioning.tracking.hold import largest_position_sigma
 from positioning.tracking.map import Map
 from positioning.tracking.map_file import SCHEMA, load_map, save_map
 from positioning.tracking.options import TrackerOptions
@@ -221,26 +220,6 @@ def test_without_the_cube_a_mapped_place_gives_a_verified_pose_and_an_unmapped_o
     elsewhere = _start(work / "orbit.map", Room(seed=77), 700, times)
     assert all(r.estimate is None for _, r in elsewhere)
     assert {r.status for _, r in elsewhere} <= {"waiting", "verifying"}
-
-
-def test_a_relocalisation_is_taken_only_where_it_is_surer_than_the_pose_the_frame_has(mapped):
-    """Relocaliser.relocalise on a real render of a mapped place: the pose comes with the
-    covariance its matches give, and ``surer_than_m`` (the pose the tracker has without it:
-    held, bridged, a target too unsure to anchor) refuses it unless it is surer; with
-    nothing (lost) it is taken whatever it is worth, and it says what that is."""
-    work, _ = mapped
-    calibration, cube = half_resolution(), make_cube()
-    truth = trajectory_at("orbit", np.array([4.1]), 6.0)[0]  # a place the map's points were seen from
-    relocaliser = Relocaliser(calibration, TrackerOptions())
-    world_map = load_map(work / "orbit.map", calibration, cube)[0]
-    image = render_view(truth, calibration=calibration, room=True, seed=5, hidden_tags=cube.ids)
-    found = relocaliser.relocalise(image, world_map)
-    assert found is not None
-    sigma = largest_position_sigma(found.covariance)
-    error = found.T_world_camera.translation - truth.translation
-    assert error @ np.linalg.solve(found.covariance[:3, :3], error) < 14.2  # inside its 3-sigma ellipsoid
-    assert relocaliser.relocalise(image, world_map, surer_than_m=1.01 * sigma) is not None
-    assert relocaliser.relocalise(image, world_map, surer_than_m=0.99 * sigma) is None
 
 
 def _refound(world_map: Map, room, views: list[Transform], relocaliser: Relocaliser) -> set[int]:

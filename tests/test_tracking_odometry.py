@@ -41,11 +41,10 @@ def _run(sequence, truth, odometry_rows, mount):
 
 
 def test_wheel_odometry_carries_the_pose_across_a_blank_wall(tmp_path_factory):
-    """Measured: vision alone 86.2 % of frames with a pose (36 frames lost at the wall, then
-    a relocalisation 52 mm off, its covariance saying so), RMS 29.3 mm, max 71.9; with the
-    odometry as the bridge (the default) 100 %, RMS 8.9 mm, max 38.2, every pose inside its
-    3-sigma ellipsoid; and until then, where vision had a pose, the same pose: the bridge
-    publishes, it does not touch the map."""
+    """Measured: vision alone 75.8 % of frames with a pose (63 frames lost at the wall), RMS
+    12.4 mm, max 36.7; with the odometry as the bridge (the default) 100 %, RMS 11.9 mm, max
+    36.7, every pose inside its 3-sigma ellipsoid; and where vision had a pose, the same pose:
+    the bridge publishes, it does not touch the map."""
     sequence = tmp_path_factory.mktemp("blank_wall") / "blank_wall"
     write_synthetic_sequence(sequence, "blank_wall", seconds=SECONDS, seed=11, calibration=half_resolution())
     truth = read_tum(sequence / "groundtruth.tum")
@@ -58,17 +57,7 @@ def test_wheel_odometry_carries_the_pose_across_a_blank_wall(tmp_path_factory):
     assert both.coverage == 1.0 and both.longest_gap_frames == 0, both
     assert both.rmse_m < 0.025 and both.max_m < 0.060, both
     assert both.consistent >= 0.97 and both.beyond_5_sigma == 0, both
-    # Lost, vision alone takes a relocalisation for what it is worth; bridged by the wheels,
-    # the frame has a pose, and a relocalisation must be as sure as the measured pose the
-    # bridge carries on from (docs/tracker.md). Until vision alone takes one the bridge
-    # refuses, every pose vision gave is the same with the wheels; after, the wheels' run is
-    # no worse.
-    diverged = next((i for i, (a, b) in enumerate(zip(alone, bridged, strict=True))
-                     if a.estimate is not None and b.status == "bridged"), len(alone))
-    if diverged < len(alone):
-        assert alone[diverged].estimate.source is PoseSource.RELOCALISED
-        assert both.rmse_m <= vision.rmse_m and both.max_m <= vision.max_m, (both, vision)
-    for a, b in zip(alone[:diverged], bridged[:diverged], strict=True):
+    for a, b in zip(alone, bridged, strict=True):
         if a.estimate is not None:
             assert b.status != "bridged" and b.estimate.source is a.estimate.source is not PoseSource.ODOMETRY
             np.testing.assert_allclose(b.estimate.T_world_camera.matrix(), a.estimate.T_world_camera.matrix(), atol=1e-9)

@@ -32,11 +32,6 @@ def position_sigma(covariance: np.ndarray | None) -> float:
     return 0.0 if covariance is None else float(np.sqrt(max(np.trace(np.asarray(covariance)[:3, :3]), 0.0)))
 
 
-def largest_position_sigma(covariance: np.ndarray) -> float:
-    """The position's largest standard deviation (root of the covariance's largest eigenvalue)."""
-    return float(np.sqrt(max(float(np.max(np.linalg.eigvalsh(np.asarray(covariance)[:3, :3]))), 0.0)))
-
-
 class RayHold:
     def __init__(self, options: TrackerOptions, fx: float) -> None:
         self.options = options
@@ -200,7 +195,8 @@ class Drift:
         """A relocalisation against keyframes: the map is built on from its pose, so its
         uncertainty stays in every pose after it until the target returns."""
         if covariance is not None:
-            self.floor_m = max(self.floor_m, largest_position_sigma(covariance))
+            sigma = float(np.sqrt(np.max(np.linalg.eigvalsh(np.asarray(covariance)[:3, :3]))))
+            self.floor_m = max(self.floor_m, sigma)
 
     def covariance(self, previous: Transform | None, pose: Transform, measured: np.ndarray | None
                    ) -> np.ndarray | None:

@@ -134,11 +134,6 @@ class TrackerOptions:
     loop_max_drift_share: float = 0.5  # ...whose drift (Drift.grown_m) is at most this share of this frame's
     loop_matches: int = 4  # ...and the map moved when this many matches within loop_window_s agree
     loop_window_s: float = 5.0
-    # ...each match that sure of the position: a closure corrects a drift of millimetres to
-    # centimetres, and the tracked pose's covariance (the drift model's bound) is far larger
-    # than the drift itself, so a match is not weighed against it (that made the laps worse:
-    # docs/notes/2026-12-05-relocalisation-when-surer.md)
-    loop_max_match_sigma_m: float = 0.01
     max_keyframes: int = 40  # older keyframes and the points only they saw are culled...
     loop_kept_keyframes: int = 60  # ...but these, spread widest over the area (Map.thin), with loop_closure
     # target
@@ -182,6 +177,7 @@ class TrackerOptions:
     reloc_min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible
     reloc_ratio: float = 0.8  # Lowe's ratio test on Hamming distances
     reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
+    reloc_max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused
     reloc_boot_iterations: int = 10_000  # RANSAC samples at boot on a saved map (relocalise.py)
     min_reference_points: int = 30  # a loaded map's points in view that give the pose alone (pose_fit.pose_from_map)
     # a loaded map's points found again at every keyframe (Relocaliser.refind)

@@ -40,7 +40,6 @@ from positioning.observer import TargetObserver, image_problem
 from positioning.target import Target
 from positioning.target_pose import PoseOptions, count_planes
 from positioning.tracking.features import KltFrontEnd
-from positioning.tracking.hold import largest_position_sigma
 from positioning.tracking.map import Map
 from positioning.tracking.odometry import OdometryPrior
 from positioning.tracking.options import TrackerOptions
@@ -253,16 +252,7 @@ class TrackingProcessor:
 
     def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult, frame: TrackedFrame
                     ) -> tuple[FrameResult, TrackedFrame]:
-        # A frame with no pose takes it for what it is worth (its covariance says). Over a
-        # pose the frame has (held, bridged, the target too unsure to anchor) it must be as
-        # sure as the measured pose that one carries on from: the held and bridged poses'
-        # covariances bound what nothing measured, far above their errors, and are no
-        # measure of a relocalisation (docs/notes/2026-12-05-relocalisation-when-surer.md).
-        base = self.tracker.measured_covariance if lost.estimate is not None else None
-        if base is None and lost.estimate is not None:
-            base = lost.estimate.covariance
-        found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting,
-                                            surer_than_m=None if base is None else largest_position_sigma(base))
+        found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting)
         if found is None:
             return lost, frame
         self.front_end.adopt(found.point_ids, found.pixels)
@@ -283,8 +273,7 @@ class TrackingProcessor:
         if not candidates:
             return tracked, frame
         found = self.relocaliser.relocalise(image, self.tracker.map, among=candidates,
-                                            excluding={int(t) for t in self.front_end.ids},
-                                            surer_than_m=self.options.tracker.loop_max_match_sigma_m)
+                                            excluding={int(t) for t in self.front_end.ids})
         if found is None:
             return tracked, frame
         reference = max(candidates, key=lambda kf: np.isin(found.point_ids, kf.descriptor_ids).sum())

@@ -21,7 +21,6 @@ from calib.camera_info import CameraCalibration
 from positioning.camera_model import ahead_mask, project, project_normalised, undistort
 from positioning.geometry import Transform
 from positioning.tracking.features import find_corners, view_at_scale
-from positioning.tracking.hold import largest_position_sigma
 from positioning.tracking.map import Keyframe, Map
 from positioning.tracking.options import TrackerOptions
 from positioning.tracking.pose_fit import fit_pose, pnp_ransac
@@ -177,11 +176,8 @@ class Relocaliser:
         return self._orb.compute(image, keypoints)
 
     def relocalise(self, image: np.ndarray, world_map: Map, thorough: bool = False,
-                   among: list[Keyframe] | None = None, excluding: set[int] | None = None,
-                   surer_than_m: float | None = None) -> Relocalisation | None:
-        """The pose of ``image`` in the map, or None when too few matches agree or, with
-        ``surer_than_m``, when the matches do not pin the position down better than that
-        (the largest standard deviation of the pose the tracker has without it). ``thorough``
+                   among: list[Keyframe] | None = None, excluding: set[int] | None = None) -> Relocalisation | None:
+        """The pose of ``image`` in the map, or None when too few matches agree. ``thorough``
         (at boot on a saved map, where nothing else can give a pose): RANSAC with
         ``reloc_boot_iterations`` P3P samples instead of 500 SQPnP ones (bench boot: a view
         15-20 deg from every keyframe has 10-25 % of its matches right; 500 samples found
@@ -229,14 +225,12 @@ class Relocaliser:
         pose = T_camera_world.inverse()
         if good.sum() < o.reloc_min_inliers or not np.all(np.isfinite(pose.matrix())):
             return None
-        # The pose is as sure as its matches pin it down (their reprojection errors): far
-        # points in a narrow view leave it centimetres unsure, and it says so; the tracker
-        # keeps that uncertainty in every pose built on it until the target returns
-        # (hold.Drift.relocalised). It is taken only where it is surer than what the
-        # tracker has without it (nothing, when lost).
+        # A wrong relocalisation is worse than none: matches of far points in a narrow view
+        # can agree on a pose that is centimetres off (measured: 60 mm on blank_wall, its
+        # map then built on it). Refused unless the matches pin the position down.
         err_px = np.linalg.norm(proj[good] - xn[good], axis=1) * self.calibration.fx
         fit = fit_pose(pose, obj[good], xn[good], None, fx=self.calibration.fx,
                        sigma_px=max(float(np.sqrt(np.mean(err_px**2))), o.track_sigma_px), iterations=0)
-        if fit is None or (surer_than_m is not None and largest_position_sigma(fit.covariance) >= surer_than_m):
+        if fit is None or np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[:3, :3]))) > o.reloc_max_position_sigma_m:
             return None
         return Relocalisation(pose, ids[good], pixels[good], len(best), fit.covariance)

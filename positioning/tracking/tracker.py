@@ -235,13 +235,6 @@ class Tracker(MapBeginning, LoopClosure):
                              frame=replace(frame, keyframe=keyframe))
 
     @property
-    def measured_covariance(self) -> np.ndarray | None:
-        """The own 6x6 covariance (the drift apart) of the last measured pose: the target's,
-        PnP's or a relocalisation's, what a held or bridged pose carries on from; None
-        before any."""
-        return self._hold.base_covariance
-
-    @property
     def holding(self) -> bool:
         """The last pose came from rays and the motion model (too few map points in view)."""
         return self._hold.holding
