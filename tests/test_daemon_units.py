@@ -308,3 +308,20 @@ def test_the_config_turns_the_trackers_loop_closure_off(tmp_path):
             assert processor.tracker.options.loop_closure is expected
         finally:
             processor.close()
+
+
+def test_the_trackers_options_come_from_the_configuration_in_one_place():
+    """preflight.processor_options: [positioning]'s face and residual limits and loop
+    closure, the keyframe budget and bundle adjustment's changes, for the daemon, cubeloc
+    track and the benchmarks alike; the defaults are the tracker's own."""
+    from daemon.config import Config, PositioningConfig
+    from daemon.preflight import processor_options
+    from positioning.tracking import ProcessorOptions
+
+    assert processor_options(Config(), background=False) == ProcessorOptions.in_frame_loop()
+    config = Config(positioning=PositioningConfig(allow_two_faces=False, max_reproj_rms_px=0.8, loop_closure=True))
+    options = processor_options(config, 400, solver="scipy")
+    assert not options.pose.allow_two_faces and options.pose.max_reproj_rms_px == 0.8
+    assert options.tracker.loop_closure and options.tracker.max_keyframes == 400
+    assert options.tracker.bundle.solver == "scipy" and options.tracker.bundle.background
+    assert options.tracker.init == ProcessorOptions().tracker.init

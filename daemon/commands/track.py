@@ -60,8 +60,9 @@ def register(subparsers) -> None:
                              "and the ATE is over the frames replayed")
     parser.add_argument("--no-plot", action="store_true", help="do not write OUT.png (the trajectory and error plot)")
     parser.add_argument("--config", metavar="FILE",
-                        help="a cubeloc.toml whose [frames] (the camera's mount) and [odometry] (its error "
-                             "model) go with --odometry")
+                        help="a cubeloc.toml: its [positioning] face and residual limits and loop_closure, as "
+                             "the daemon takes them; its [frames] (the camera's mount) and [odometry] (its error "
+                             "model) with --odometry")
     parser.set_defaults(func=run)
 
 
