@@ -15,7 +15,7 @@ import pytest
 
 from calib.camera_info import paper_camera
 from fakes.optics import project
-from positioning.estimator import PoseState
+from positioning.estimator import PoseSource, PoseState
 from positioning.evaluation import absolute_trajectory_error
 from positioning.geometry import Transform, look_at
 from positioning.target import make_cube
@@ -387,8 +387,11 @@ def test_reset_forgets_the_map():
     assert out.init_status is InitStatus.NO_TARGET_POSE
 
 
-@pytest.mark.parametrize("seed", [21])
-def test_pure_rotation_stays_finite_and_ends_lost_or_tracking_without_a_jump(seed):
+@pytest.mark.parametrize("seed", [21, 8, 12])
+def test_pure_rotation_keeps_a_finite_pose_on_every_frame_without_a_jump(seed):
+    """A 120-degree spin on the spot (3 deg a frame) after a short drive: the map's points
+    leave the view and the pose is held on the tracks' rays, never lost (measured: 40 of 40
+    frames with a pose on seeds 0-12 and 21: the map's for the first 10-15, held after)."""
     start = look_at(np.array([-1.5, -1.8, 0.5]), np.zeros(3))
     poses = [look_at(start.translation + np.array([0.01 * i, 0.0, 0.0]), np.zeros(3)) for i in range(20)]
     centre = poses[-1].translation
@@ -401,13 +404,11 @@ def test_pure_rotation_stays_finite_and_ends_lost_or_tracking_without_a_jump(see
     previous = None
     for i, o in enumerate(outputs[20:], start=20):
         e = o.result.estimate
-        if e is None:
-            assert o.result.status == "lost"
-            previous = None
-            continue
+        assert e is not None, (i, o.result.status, o.result.detail)  # the floor: every frame has a pose
         assert np.all(np.isfinite(e.T_world_camera.matrix()))
         assert np.linalg.norm(e.T_world_camera.translation - poses[i].translation) < 0.05
         if previous is not None:
             assert np.linalg.norm(e.T_world_camera.translation - previous) < 0.05  # no wild jump
         previous = e.T_world_camera.translation
+    assert sum(o.result.estimate.source is PoseSource.HELD for o in outputs[20:]) >= 20  # the spin is held
 

@@ -155,6 +155,9 @@ class TrackerOptions:
     hold_sigma_m: float = 0.01  # the held position's standard deviation at once...
     hold_sigma_m_per_s: float = 0.05  # ...growing by this per second held
     max_hold_s: float = 20.0  # longer than this on rays alone: lost
+    # lost, the wheels alone carry the last pose on for at most this long (odometry.bridge);
+    # past it the odometry's drift is the pose, and the frame is lost
+    max_bridge_s: float = 20.0
     max_coast_s: float = 0.5  # with too few rays too, the motion model alone for this long
     coast_accel_m_s2: float = 1.0  # ...for a robot that may change its speed by this meanwhile
     coast_angular_accel_rad_s2: float = 2.0  # ...and its turn rate by this

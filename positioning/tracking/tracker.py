@@ -191,7 +191,7 @@ class Tracker(MapBeginning, LoopClosure):
             self._hold.end()
             detail = f"{inliers} map points agree with a pose, {self.options.min_pnp_inliers} needed"
             bridged = None if self.odometry is None or last is None else self.odometry.bridge(
-                last, self.motion.stamp, self.motion.covariance, stamp_ns, self.options.max_hold_s)
+                last, self.motion.stamp, self.motion.covariance, stamp_ns, self.options.max_bridge_s)
             if bridged is not None:  # published, and nothing else: the map waits for the camera
                 estimate = PoseEstimate(bridged[0], PoseState.TRACKING, 0, (), 0.0, bridged[1], PoseSource.ODOMETRY)
                 return TrackerOutput(FrameResult(estimate, "bridged", f"wheel odometry; {detail}"), False, drop,
