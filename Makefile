@@ -21,7 +21,7 @@ LOOPBACK := scripts/loopback-only
 TEST_WORKERS ?= 2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all install test lint bench demo soak clean constraints
+.PHONY: all install test test-fast lint bench demo soak clean constraints
 
 all: test
 
@@ -52,6 +52,10 @@ lint: install
 test: lint
 	$(LOOPBACK) $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake'
 	$(LOOPBACK) $(BIN)/python -m pytest -q -m gv_fake
+
+# The edit-test loop: the tests of the suite under 1 s each (tests/slow_tests.txt lists the rest)
+test-fast: install
+	$(LOOPBACK) $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake and not slow'
 
 bench: install
 	$(LOOPBACK) $(BIN)/python -m bench

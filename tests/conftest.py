@@ -80,9 +80,16 @@ def non_loopback_interfaces() -> list[str]:
     return [name for _, name in socket.if_nameindex() if name != "lo"]
 
 
+# The tests ``make test-fast`` leaves out (measured, see the file's header).
+SLOW_TESTS = frozenset(line.strip() for line in (Path(__file__).parent / "slow_tests.txt").read_text().splitlines()
+                       if line.strip() and not line.startswith("#"))
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         path = Path(str(item.fspath))
+        if item.nodeid.split("[")[0] in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)
         if _starts_gv_fake(path):
             item.add_marker(pytest.mark.gv_fake)
         if _touches_aravis(path):
