@@ -67,7 +67,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-
     import structlog
 
     from calib.camera_info import read_camera_info
