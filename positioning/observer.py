@@ -6,9 +6,10 @@ are therefore the same edge-aligned poses with the same checks. Per image:
 
 * search: the tag regions predicted from a prior pose (decimated, fast; a tag missed there
   is searched again in a masked region, everything outside its predicted quiet zone
-  painted white); the full frame (decimate 3, then finer when it found small tags or
-  none) when they give fewer tags than last time, if the caller allows a full search; after a full-frame pose, the masked regions of tags
-  the pose says are in view but were not found; when the full frame gives one face only,
+  painted white); the full frame (decimate 3) when they give fewer tags than last time,
+  if the caller allows a full search; after a full-frame pose, the masked regions of tags
+  the pose says are in view but were not found; finer full-frame passes when the coarse
+  one found nothing, or found small tags and the pose leaves a tag in view unused; when the full frame gives one face only,
   faces whose residuals disagree or a second face too oblique, the neighbourhood of each
   tag without decimation (recovery);
 * refine: corners from lines fitted to the tags' edges (``detection.refine_corners``),
@@ -49,11 +50,13 @@ from positioning.tag_search import (
     LARGE_TAG_PX,
     NEIGHBOURHOOD_TAG_SIZES,
     REGION_GROWTH,
+    REGION_MARGIN_PX,
     TagRegion,
     decimate_for,
     finest_empty_decimate,
     grey_percentile,
     predicted_tag_regions,
+    tags_in_view,
 )
 from positioning.target import Target
 from positioning.target_pose import (
@@ -131,6 +134,7 @@ class TargetObserver:
         self._scale_checked = False
         self.last_search = ""
         self._suspects: set[int] = set()  # this frame's tags whose quads failed refinement
+        self._full_decimate = full_frame_decimate  # this frame's finest full-frame pass so far
         self._decoded: dict[int, np.ndarray] = {}  # this frame's tags decoded by any search: corners
         self._masked_ids: set[int] = set()  # tags found only by the masked search
         self._scale_message = ""  # the tag-size warning, repeated on every refused frame
@@ -209,15 +213,43 @@ class TargetObserver:
         self.last_search = "full"
         # Coarse first (decimate 3: a third of the cost of the paper's 2). An empty result
         # pays for one finer pass, as fine as the library's decimation costs on the paper's
-        # frame (``finest_empty_decimate``); small tags found (the target far, or a
-        # low-resolution camera) for a finer pass that finds their like (decimate_for).
-        # Tags missed next to found ones are recovered by the completion search.
+        # frame (``finest_empty_decimate``). Small tags found (the target far, or a
+        # low-resolution camera) may have smaller neighbours the coarse pass missed: a finer
+        # pass that finds their like (``_finer``) runs only if the pose from what was found,
+        # with the completion search, leaves a tag in view unused (``_observe``).
         decimate = self.full_frame_decimate
         found = self._ours(self._detector.detect(image, None, decimate))
         if not self.fine_search:  # the library's own decimation, and only after nothing
             if not found and decimate > self._detector.options.quad_decimate:
                 found = self._ours(self._detector.detect(image))
             return found
+        self._full_decimate = decimate
+        if found:
+            return self._decoded_finer(image, found, decimate)
+        return self._finer(image, found, decimate)
+
+    def _decoded_finer(self, image: np.ndarray, found: list[TagDetection], decimate: float) -> list[TagDetection]:
+        """``found`` with each tag too small for ``decimate`` decoded again in its own
+        neighbourhood at the decimation that keeps it findable (``decimate_for``): the
+        library's corners of a small tag are the better the finer its quad search, and the
+        edge alignment starts from them."""
+        out = []
+        for detection in found:
+            finer = decimate_for(quad_width_px(detection.corners), decimate)
+            if finer < decimate:
+                # its box with the margin of a predicted region (``predicted_tag_regions``)
+                x0, y0 = np.floor(detection.corners.min(axis=0) - REGION_MARGIN_PX).astype(int)
+                x1, y1 = np.ceil(detection.corners.max(axis=0) + REGION_MARGIN_PX).astype(int)
+                again = [d for d in self._ours(self._detector.detect(image, (x0, y0, x1, y1), finer))
+                         if d.tag_id == detection.tag_id]
+                detection = again[0] if again else detection
+            out.append(detection)
+        return out
+
+    def _finer(self, image: np.ndarray, found: list[TagDetection], decimate: float) -> list[TagDetection]:
+        """Full-frame passes finer than ``decimate`` until one keeps the smallest tag found
+        findable (``decimate_for``; after nothing, ``finest_empty_decimate``); ``found`` with
+        what they add."""
         while True:
             if found:
                 finer = decimate_for(min(quad_width_px(d.corners) for d in found), decimate)
@@ -225,10 +257,15 @@ class TargetObserver:
                 finer = min(decimate, finest_empty_decimate(image.shape, self._detector.options.quad_decimate))
             if finer >= decimate:
                 return found
-            decimate = finer
+            decimate = self._full_decimate = finer
             more = self._ours(self._detector.detect(image, None, decimate))
             have = {d.tag_id for d in more}
             found = more + [d for d in found if d.tag_id not in have]
+
+    def _every_tag_in_view(self, pose: TargetPose | None) -> bool:
+        """Whether ``pose`` uses every tag it puts wholly in the image facing the camera."""
+        return pose is not None and set(tags_in_view(self.target, self.calibration, pose.T_world_camera)) <= set(
+            pose.tag_ids)
 
     def _complete(self, image: np.ndarray, detections: list[TagDetection], pose: Transform,
                   growth: float = REGION_GROWTH) -> list[TagDetection]:
@@ -333,33 +370,14 @@ class TargetObserver:
         found = self._search(image, full_search)
         if not found:
             return Observation(None, Refusal.NO_TARGET, "no tag of the target in view", (), None, self.last_search)
-        # In the steady state the edge alignment replaces the corner refinement: the
-        # library's corners only need to bring the pose within a third of a cell.
-        steady = self.edge_alignment and self.last_search == "predicted"
-        detections = found if steady else self._refine(image, found)
-        outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
-                                       with_covariance=False)
-        if steady and (outcome.pose is None or len(outcome.pose.tag_ids) < len(detections)):
-            # a tag left out or no pose from the library's corners (a blurred quad): the
-            # refined corners drop a bad quad by its edges, not by its neighbours' pose
-            detections = self._refine(image, found)
-            outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
-                                           with_covariance=False)
-        if outcome.pose is not None and (self.last_search == "full" or self._suspects):
-            # Search again for the tags the pose says are in view but it did not use
-            # (not found, or left out as a bad quad); keep what improves the pose.
-            used = [d for d in detections if d.tag_id in outcome.pose.tag_ids]
-            extra = self._complete(image, used, outcome.pose.T_world_camera, COMPLETION_GROWTH)
-            if extra:
-                completed = estimate_target_pose(used + extra, self.target, self.calibration, self.options,
-                                                 self._prior, with_covariance=False)
-                if completed.pose is not None and len(completed.pose.tag_ids) > len(outcome.pose.tag_ids):
-                    outcome, detections = completed, used + extra
-        elif self.last_search == "full" and outcome.refusal in (Refusal.ONE_FACE, Refusal.REPROJECTION,
-                                                                 Refusal.OBLIQUE):
-            recovered = self._recover(image, detections)
-            if recovered is not None:
-                outcome, detections = recovered
+        outcome, detections, steady = self._pose_of(image, found)
+        if self.last_search.startswith("full") and self.fine_search and not self._every_tag_in_view(outcome.pose):
+            coarse = self._full_decimate
+            finer = self._finer(image, found, coarse)
+            if self._full_decimate < coarse:  # a finer pass ran: its tags and corners
+                self._suspects = set()
+                self.last_search = "full"
+                outcome, detections, steady = self._pose_of(image, finer)
         seen = tuple(sorted(self._decoded))  # every tag decoded, used or not
         outlines = tuple((i, self._decoded[i]) for i in seen)
         if outcome.pose is None:
@@ -387,6 +405,39 @@ class TargetObserver:
         if not self._scale_checked and pose.planes >= 3:
             self._warn_on_scale(detections, pose, seq)
         return Observation(pose, None, outcome.detail, seen, corners_px, self.last_search, outlines)
+
+    def _pose_of(self, image: np.ndarray, found: list[TagDetection]):
+        """The pose of the tags ``found`` (refined unless in the steady state), completed by
+        the tags it says are in view after a full search, or recovered from single tags:
+        (outcome, the detections it was posed from, steady)."""
+        # In the steady state the edge alignment replaces the corner refinement: the
+        # library's corners only need to bring the pose within a third of a cell.
+        steady = self.edge_alignment and self.last_search == "predicted"
+        detections = found if steady else self._refine(image, found)
+        outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
+                                       with_covariance=False)
+        if steady and (outcome.pose is None or len(outcome.pose.tag_ids) < len(detections)):
+            # a tag left out or no pose from the library's corners (a blurred quad): the
+            # refined corners drop a bad quad by its edges, not by its neighbours' pose
+            detections = self._refine(image, found)
+            outcome = estimate_target_pose(detections, self.target, self.calibration, self.options, self._prior,
+                                           with_covariance=False)
+        if outcome.pose is not None and (self.last_search == "full" or self._suspects):
+            # Search again for the tags the pose says are in view but it did not use
+            # (not found, or left out as a bad quad); keep what improves the pose.
+            used = [d for d in detections if d.tag_id in outcome.pose.tag_ids]
+            extra = self._complete(image, used, outcome.pose.T_world_camera, COMPLETION_GROWTH)
+            if extra:
+                completed = estimate_target_pose(used + extra, self.target, self.calibration, self.options,
+                                                 self._prior, with_covariance=False)
+                if completed.pose is not None and len(completed.pose.tag_ids) > len(outcome.pose.tag_ids):
+                    outcome, detections = completed, used + extra
+        elif self.last_search == "full" and outcome.refusal in (Refusal.ONE_FACE, Refusal.REPROJECTION,
+                                                                 Refusal.OBLIQUE):
+            recovered = self._recover(image, detections)
+            if recovered is not None:
+                outcome, detections = recovered
+        return outcome, detections, steady
 
     def _warn_on_scale(self, detections: list[TagDetection], pose, seq: int) -> str:
         """Once per reset: does the target file's tag size match the printed tags?

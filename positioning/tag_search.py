@@ -104,6 +104,27 @@ def _field_of_view_of(width: int, height: int, k_bytes: bytes, d_bytes: bytes,
     return low, high
 
 
+def tags_in_view(target: Target, calibration: CameraCalibration, T_world_camera: Transform) -> list[int]:
+    """The tags wholly in the image at ``T_world_camera`` and facing the camera, however
+    obliquely: every corner in front of it, within the field of view, and inside the image."""
+    T_camera_world = T_world_camera.inverse()
+    low_n, high_n = _field_of_view(calibration)
+    inside = []
+    for tag in target.tags:
+        if tag.normal @ (T_world_camera.translation - tag.center) <= 0.0:
+            continue
+        corners = T_camera_world.apply(tag.corners)
+        if np.any(corners[:, 2] <= 0.0):
+            continue
+        xn = corners[:, :2] / corners[:, 2:]
+        if np.any((xn < low_n) | (xn > high_n)):
+            continue
+        pixels = project(corners, calibration)
+        if np.all((pixels >= 0.0) & (pixels <= (calibration.width - 1, calibration.height - 1))):
+            inside.append(tag.tag_id)
+    return inside
+
+
 def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_world_camera: Transform,
                           growth: float = REGION_GROWTH, margin_px: int = REGION_MARGIN_PX) -> list[TagRegion]:
     """Where each tag facing the camera at ``T_world_camera`` should appear, one pixel box

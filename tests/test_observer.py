@@ -10,6 +10,7 @@ from calib.camera_info import paper_camera
 from fakes import render_view
 from positioning.detection import TagDetector
 from positioning.geometry import look_at
+from positioning.observer import TargetObserver
 from positioning.range_map import camera_on_sphere
 from positioning.single_frame import TargetPoseProcessor
 from positioning.target import make_cube
@@ -71,3 +72,44 @@ def test_the_masked_search_paints_the_quiet_zone_grey_level_numpy_would_give():
     for values in samples:
         for q in (10.0, 50.0, 90.0):
             assert grey_percentile(values, q) == pytest.approx(np.percentile(values, q), abs=1e-9)
+
+
+def _full_frame_passes(observer: TargetObserver) -> list[float]:
+    """Records the decimation of every full-frame library run ``observer`` makes."""
+    passes: list[float] = []
+    detect = observer._detector.detect
+
+    def recorded(image, roi=None, decimate=None, sigma=None):
+        if roi is None and image.shape == (CAMERA.height, CAMERA.width):  # not a masked crop
+            passes.append(decimate)
+        return detect(image, roi, decimate, sigma)
+
+    observer._detector.detect = recorded
+    return passes
+
+
+def test_a_far_cube_is_searched_finer_only_where_its_pose_leaves_a_tag_in_view_unused():
+    """At 4 m every tag is small for the coarse pass (decimate 3). Three faces on, the
+    coarse pass and the completion search give every tag in view: no finer full-frame pass
+    runs (each is a whole library run: 49 ms at decimate 1 against 6 ms at 3), and the pose
+    is as good (measured 0.15-0.5 mm off). Seen from low on one face, the coarse pass finds
+    one tag of three; the finer passes find the others, and the pose uses all three."""
+    for k, azimuth in enumerate((45.0, 135.0, 225.0)):
+        truth = camera_on_sphere(azimuth, 33.0, 4.0)
+        observer = TargetObserver(CUBE, CAMERA)
+        passes = _full_frame_passes(observer)
+        image = render_view(truth, seed=k)
+        observer.observe(image, None, 0, full_search=True)  # the first also checks the tags' size
+        passes.clear()
+        observation = observer.observe(image, None, 1, full_search=True)
+        assert observation.pose is not None and len(observation.pose.tag_ids) == 3, observation.detail
+        assert passes == [3.0], passes
+        assert np.linalg.norm(observation.pose.T_world_camera.translation - truth.translation) < 0.001
+    position = np.array([0.650, -3.702, 1.368])
+    truth = look_at(position, position + 4.0 * np.array([-0.1349, 0.9520, -0.2748]))
+    observer = TargetObserver(CUBE, CAMERA)
+    passes = _full_frame_passes(observer)
+    observation = observer.observe(render_view(truth, seed=1), None, 0, full_search=True)
+    assert passes[0] == 3.0 and min(passes) < 3.0, passes
+    assert observation.pose is not None and observation.pose.tag_ids == (0, 3, 4), observation.detail
+    assert np.linalg.norm(observation.pose.T_world_camera.translation - truth.translation) < 0.003
