@@ -80,32 +80,6 @@ def test_two_relocalisations_in_a_row_give_the_motion_model_the_turn_between_the
     assert np.degrees(tracker.predict(200_000_000).rotation_angle_to(turn[2])) < 1e-6
 
 
-def test_a_relocalisation_too_unsure_to_build_on_is_tracked_on_and_adds_nothing_to_the_map():
-    """Lost with nothing else giving a pose, the caller takes a relocalisation less sure
-    than ``reloc_max_position_sigma_m``: the tracker goes on from it on the map, each pose
-    claiming at least the match's uncertainty, and adds no keyframe and no point (points
-    triangulated from it would carry its error into the map: one 26 mm off ran away to
-    2.4 m), until the target or a relocalisation within the bound places it again."""
-    poses = trolley_path(40)
-    tracker = Tracker(CAL, SYNC)
-    source = SyntheticTracks(room_points(12), seed=13, noise_px=0.0)
-    run(tracker, source, poses[:21], lambda i: i < 12)
-    keyframes, points = set(tracker.map.keyframes), set(tracker.map.points)
-    loose = np.diag([0.02**2] * 3 + [1e-6] * 3)  # 20 mm, beyond the 10 mm bound
-    _, frame = tracker.relocalised(20 * 100_000_000, poses[20], source.tracks(poses[20]), loose)
-    assert tracker.unsure and frame.keyframe is None
-    for k in range(21, 31):
-        out = tracker.step(k * 100_000_000, source.tracks(poses[k]), None)
-        if out.want_features:
-            tracker.add_tracks(out.frame, source.detect())
-        estimate = out.result.estimate
-        assert estimate is not None and out.frame.keyframe is None, (k, out.result)
-        assert np.sqrt(np.linalg.eigvalsh(estimate.covariance[:3, :3]).max()) >= 0.02
-    assert set(tracker.map.keyframes) == keyframes and set(tracker.map.points) == points
-    _, frame = tracker.relocalised(31 * 100_000_000, poses[31], source.tracks(poses[31]), np.eye(6) * 1e-6)
-    assert not tracker.unsure and frame.keyframe is not None
-
-
 def _wheels_under(poses: list[Transform], mount: Transform, as_prior: bool):
     """An odometry prior whose samples are the base's true poses under camera ``poses``
     (one a frame, 100 ms apart, and one more frame ahead)."""

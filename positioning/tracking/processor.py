@@ -19,7 +19,6 @@ on rays, or bridged by the wheels: the estimate's ``PoseSource`` says which),
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -185,19 +184,19 @@ class TrackingProcessor:
         # on the target: look for the map's keyframes; a match ends each
         bridged = _source(result) is PoseSource.ODOMETRY
         searching = self.tracker.initialised and (self.tracker.holding or self.tracker.lost
-                                                  or self.tracker.beginning_again or self.tracker.unsure)
+                                                  or self.tracker.beginning_again)
         if searching:
             self._lost_frames += 1
             every = 1 if self._booting else self.options.relocalise_every  # at boot nothing else can give a pose
             if (self._lost_frames - 1) % every == 0:  # it costs ~4 KLT steps
-                result, frame = self._relocalise(image, stamp_ns, result, frame, loose=result.estimate is None)
+                result, frame = self._relocalise(image, stamp_ns, result, frame)
                 bridged = _source(result) is PoseSource.ODOMETRY
             want = result.estimate is not None and not bridged
         else:
             want = out.want_features or self.tracker.holding  # held: fresh corners keep the rays coming
             if out.keyframe and self.options.tracker.loop_closure and _source(result) is PoseSource.MAP:
                 result, frame = self._close_loop(image, frame, result)
-        if result.estimate is not None and not self.tracker.holding and not self.tracker.unsure and not bridged:
+        if result.estimate is not None and not self.tracker.holding and not bridged:
             self._lost_frames = 0
         if want:
             self._add_features(image, frame, out.keyframe, result)
@@ -251,15 +250,9 @@ class TrackingProcessor:
             self.relocaliser.describe(image, self.tracker.map.last_keyframe, self.tracker.map, tracks.ids,
                                       tracks.pixels)
 
-    def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult, frame: TrackedFrame,
-                    loose: bool = False) -> tuple[FrameResult, TrackedFrame]:
-        """This frame matched to the map's keyframes. Only a match within
-        ``reloc_max_position_sigma_m`` replaces a pose; a ``loose`` search (no pose at all
-        this frame, not at boot) takes any, and the tracker maps nothing from it
-        (``Tracker.unsure``)."""
-        bound = math.inf if loose and not self._booting else None
-        found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting,
-                                            max_position_sigma_m=bound)
+    def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult, frame: TrackedFrame
+                    ) -> tuple[FrameResult, TrackedFrame]:
+        found = self.relocaliser.relocalise(image, self.tracker.map, thorough=self._booting)
         if found is None:
             return lost, frame
         self.front_end.adopt(found.point_ids, found.pixels)

@@ -176,17 +176,14 @@ class Relocaliser:
         return self._orb.compute(image, keypoints)
 
     def relocalise(self, image: np.ndarray, world_map: Map, thorough: bool = False,
-                   among: list[Keyframe] | None = None, excluding: set[int] | None = None,
-                   max_position_sigma_m: float | None = None) -> Relocalisation | None:
+                   among: list[Keyframe] | None = None, excluding: set[int] | None = None) -> Relocalisation | None:
         """The pose of ``image`` in the map, or None when too few matches agree. ``thorough``
         (at boot on a saved map, where nothing else can give a pose): RANSAC with
         ``reloc_boot_iterations`` P3P samples instead of 500 SQPnP ones (bench boot: a view
         15-20 deg from every keyframe has 10-25 % of its matches right; 500 samples found
         none, 10,000 found 16-28 inliers; P3P's samples are 4x cheaper: ~100 ms). ``among``
         matches against those keyframes' points only, less the ``excluding`` ones (a loop
-        closure: a place seen long ago, not the points being tracked). A pose less sure
-        than ``max_position_sigma_m`` (``reloc_max_position_sigma_m`` unless given) is
-        refused."""
+        closure: a place seen long ago, not the points being tracked)."""
         o = self.options
         known: dict[int, np.ndarray] = {}
         for kf in world_map.keyframes.values() if among is None else among:  # newest last: its descriptor wins
@@ -228,12 +225,12 @@ class Relocaliser:
         pose = T_camera_world.inverse()
         if good.sum() < o.reloc_min_inliers or not np.all(np.isfinite(pose.matrix())):
             return None
-        # Matches of far points in a narrow view can agree on a pose that is centimetres off
-        # (measured: 60 mm on blank_wall, its map then built on it): its covariance says so.
+        # A wrong relocalisation is worse than none: matches of far points in a narrow view
+        # can agree on a pose that is centimetres off (measured: 60 mm on blank_wall, its
+        # map then built on it). Refused unless the matches pin the position down.
         err_px = np.linalg.norm(proj[good] - xn[good], axis=1) * self.calibration.fx
         fit = fit_pose(pose, obj[good], xn[good], None, fx=self.calibration.fx,
                        sigma_px=max(float(np.sqrt(np.mean(err_px**2))), o.track_sigma_px), iterations=0)
-        bound = o.reloc_max_position_sigma_m if max_position_sigma_m is None else max_position_sigma_m
-        if fit is None or np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[:3, :3]))) > bound:
+        if fit is None or np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[:3, :3]))) > o.reloc_max_position_sigma_m:
             return None
         return Relocalisation(pose, ids[good], pixels[good], len(best), fit.covariance)

@@ -107,11 +107,6 @@ class Tracker(MapBeginning, LoopClosure):
         # the rays that hold the orientation when few map points are in view; the drift since the target
         self._hold = RayHold(self.options, self.fx)
         self._drift = Drift(self.options)
-        # the pose goes on from a relocalisation less sure than ``reloc_max_position_sigma_m``
-        # (taken when lost, nothing else giving a pose): it is published and tracked on the
-        # map, and nothing is added to the map (no keyframe, no point) until the target or
-        # a relocalisation within the bound places it again
-        self.unsure = False
 
     def start_lost_on(self, world_map: Map) -> None:
         """Track on ``world_map`` (a saved map) from the next frame: lost on it until a
@@ -221,7 +216,6 @@ class Tracker(MapBeginning, LoopClosure):
         # and out of a target pose too uncertain to anchor are its error: the velocity stays
         self.motion.after_relocalisation = self.motion.after_relocalisation or forced
         noisy = trusted is not None and not self._anchors(trusted)
-        self.unsure = self.unsure and (trusted is None or noisy)
         self.motion.update(pose, stamp_ns, noisy=noisy, own=own, held=held is not None)
         if held is None and not noisy:
             self.motion.measured = (pose, stamp_ns)
@@ -231,12 +225,6 @@ class Tracker(MapBeginning, LoopClosure):
             # from it; fresh corners keep the rays coming
             return TrackerOutput(FrameResult(estimate, "ok", "held: orientation from rays"), True, drop, frame=frame)
         status = "ok" if state is not PoseState.RELOCALISED else "relocalised"
-        if self.unsure:
-            # on a relocalisation too unsure to build on: points triangulated from it would
-            # carry its error into the map as measured (a map built on one 26 mm off ran away
-            # to 2.4 m: docs/notes/2026-12-05-relocalisation-when-surer.md)
-            return TrackerOutput(FrameResult(estimate, status, "relocalised too unsure to map from"), True, drop,
-                                 frame=frame)
         if trusted is not None and not self._anchors(trusted):
             # nor from a target pose too uncertain to anchor: each is off on its own, and points
             # triangulated between two of them are off by as much as their baseline
@@ -275,9 +263,7 @@ class Tracker(MapBeginning, LoopClosure):
                     ) -> tuple[np.ndarray | None, TrackedFrame]:
         """The caller found ``pose`` by matching this frame to the keyframes, and follows
         the matched map points again as ``tracks``. The frame becomes a keyframe, so the
-        fresh corners that ``add_tracks`` brings next can be triangulated against it; a
-        match less sure than ``reloc_max_position_sigma_m`` (the caller takes one only
-        when lost) makes none, and the tracker is ``unsure`` from it.
+        fresh corners that ``add_tracks`` brings next can be triangulated against it.
         Returns the pose's covariance (the match's, ``covariance``, plus the drift) and
         the frame."""
         self._drift.relocalised(covariance)
@@ -288,9 +274,6 @@ class Tracker(MapBeginning, LoopClosure):
         self.motion.relocalised(pose, stamp_ns, covariance, match)
         self._tracks_stamp = stamp_ns
         xn = undistort(tracks.pixels, self.calibration)
-        self.unsure = match is not None and position_sigma(match) > self.options.reloc_max_position_sigma_m
-        if self.unsure:
-            return covariance, TrackedFrame(stamp_ns, tracks, xn, None, pose)
         keyframe = self.map.add_keyframe(stamp_ns, pose, tracks.ids, xn)
         keyframe.position_sigma_m, keyframe.drift_m = position_sigma(match), self._drift.grown_m
         self._frames_since_keyframe, self._kf_points_at_insert = 0, len(tracks.ids)
