@@ -6,7 +6,10 @@ Each seed is rendered once into a cache (``CUBELOC_BENCH_FAMILY=DIR``, default
 frames would change (its ``render.key``). Each tree replays it with ``cubeloc track``
 in a child process (bundle adjustment in the frame loop, so every run is the same).
 
-Per seed: coverage, RMS and max position error with no alignment, the error per metre
+Per seed: coverage, the share of frames lost where an earlier posed frame had seen the
+place (within 0.7 m and 25 deg, on the truth: ``evaluation.lost_where_seen_before``, what
+relocalisation could at best give back; the rest of the lost frames need the map to grow),
+RMS and max position error with no alignment, the error per metre
 travelled since the cube was last in view (median over the frames at least 1 m from it),
 the longest stretch without a pose (seconds), the share of poses inside their 3-sigma
 ellipsoid and those beyond 5 sigma, fps (the replay's own), and whether the seed meets the
@@ -75,7 +78,7 @@ def seed_figures(sequence: Path, per_frame: list, first: int = 0) -> dict:
     """The per-seed figures of one run (see the module's docstring); a run replayed from
     frame ``first`` is scored on the frames from there."""
     from fakes.family import make_case
-    from positioning.evaluation import score_run
+    from positioning.evaluation import lost_where_seen_before, score_run
     from positioning.trajectory_io import read_tum
 
     truth = read_tum(sequence / "groundtruth.tum")[first:]
@@ -96,7 +99,8 @@ def seed_figures(sequence: Path, per_frame: list, first: int = 0) -> dict:
             "per_metre_mm": per_metre, "gap_s": score.longest_gap_frames / described["camera"]["fps"],
             "consistent": score.consistent, "beyond_5": score.beyond_5_sigma, "away_m": away_m,
             "bound_mm": bound_mm, "meets": bool(meets), "flagged": bool(described["unobservable"]),
-            "frames": score.frames}
+            "frames": score.frames,
+            "lost_seen": float(lost_where_seen_before(truth, [e is not None for e in per_frame]).mean())}
 
 
 def run_tree(tree: Path, sequence: Path, work: Path, label: str, first: int = 0) -> dict:
@@ -169,11 +173,13 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
                      f"{cam['hfov_deg']:.0f} deg, {cam['fps']:g} fps, lever {cam['lever_m']:.2f}",
                      f"{motion['speed_m_s']:.2f} m/s, {motion['turn_deg_s']:.0f} deg/s, {motion['seconds']:.0f} s",
                      ", ".join(described["unobservable"]) or "-",
-                     f"{100 * f['coverage']:.1f} %", f"{f['rms_mm']:.1f}", f"{f['max_mm']:.0f}",
+                     f"{100 * f['coverage']:.1f} %", f"{100 * f['lost_seen']:.1f} %", f"{f['rms_mm']:.1f}",
+                     f"{f['max_mm']:.0f}",
                      f"{f['per_metre_mm']:.1f}", f"{f['gap_s']:.1f}",
                      f"{100 * f['consistent']:.1f} % ({f['beyond_5']})", f"{f['fps']:.1f}",
                      "crashed" if f.get("crashed") else "yes" if f["meets"] else "no"])
-    table = markdown_table(["seed", "tracker", "from frame", "scene", "camera", "motion", "unobservable", "coverage", "RMS mm",
+    table = markdown_table(["seed", "tracker", "from frame", "scene", "camera", "motion", "unobservable", "coverage",
+                            "lost where seen before", "RMS mm",
                             "max mm", "mm per m away", "longest gap s", "inside 3 sigma (beyond 5)", "fps",
                             "meets goals"], rows)
     summary_rows = []
@@ -183,6 +189,7 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
                 continue
             summary_rows.append([label, subset, len(chosen), f"{sum(f['meets'] for f in chosen)}",
                                  distribution([100 * f["coverage"] for f in chosen], True),
+                                 distribution([100 * f["lost_seen"] for f in chosen]),
                                  distribution([f["rms_mm"] for f in chosen]),
                                  distribution([f["max_mm"] for f in chosen]),
                                  distribution([f["per_metre_mm"] for f in chosen]),
@@ -191,7 +198,7 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
                                  distribution([f["beyond_5"] for f in chosen]),
                                  distribution([f["fps"] for f in chosen], True)])
     summary = markdown_table(["tracker", "seeds", "count", "meet the goals", "coverage % (median / p10 / worst)",
-                              "RMS mm (median / p90 / worst)", "max mm", "mm per m away", "longest gap s",
+                              "lost where seen before %", "RMS mm (median / p90 / worst)", "max mm", "mm per m away", "longest gap s",
                               "inside 3 sigma % (median / p10 / worst)", "beyond 5 sigma", "fps (median / p10 / worst)"],
                              summary_rows)
     seeds = sorted({seed for seed, *_ in results})

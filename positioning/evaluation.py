@@ -280,6 +280,43 @@ def score_run(truth: list[StampedPose], poses: list[tuple[StampedPose, np.ndarra
     )
 
 
+# a place "seen before": within this distance and view angle of an earlier posed frame,
+# about how far ORB's matches against a keyframe reach (docs/notes/2026-12-05-far-halls-and-held-frames.md)
+SEEN_BEFORE_RADIUS_M = 0.7
+SEEN_BEFORE_ANGLE_DEG = 25.0
+
+
+def lost_where_seen_before(truth: list[StampedPose], posed: list[bool], radius_m: float = SEEN_BEFORE_RADIUS_M,
+                           angle_deg: float = SEEN_BEFORE_ANGLE_DEG) -> np.ndarray:
+    """For each frame (``truth`` and ``posed`` one per frame, in time order): whether it has
+    no pose although an earlier frame with a pose was taken within ``radius_m`` of it,
+    looking within ``angle_deg`` of its direction (both on the truth): the frames a
+    relocalisation against the map could at best give back. A frame lost elsewhere needs
+    the map to grow first.
+
+    >>> from positioning.geometry import Transform
+    >>> at = lambda x, turned=False: StampedPose(0, Transform(np.diag([-1.0, 1.0, -1.0]) if turned else np.eye(3),
+    ...                                                       np.array([x, 0.0, 0.0])))
+    >>> truth = [at(0.0), at(5.0), at(0.2), at(9.0), at(0.1, turned=True)]
+    >>> lost_where_seen_before(truth, [True, True, False, False, False]).tolist()
+    [False, False, True, False, False]
+    """
+    if len(truth) != len(posed):
+        raise ValueError(f"{len(truth)} ground-truth poses for {len(posed)} frames")
+    centres = np.array([t.T_world_camera.translation for t in truth]).reshape(-1, 3)
+    axes = np.array([t.T_world_camera.rotation[:, 2] for t in truth]).reshape(-1, 3)
+    cos_limit = np.cos(np.radians(angle_deg))
+    out = np.zeros(len(truth), bool)
+    seen: list[int] = []
+    for i, has_pose in enumerate(posed):
+        if has_pose:
+            seen.append(i)
+        elif seen:
+            near = np.linalg.norm(centres[seen] - centres[i], axis=1) < radius_m
+            out[i] = bool(np.any(near & (axes[seen] @ axes[i] > cos_limit)))
+    return out
+
+
 def score_estimates(truth: list[StampedPose], estimates: list) -> RunScore:
     """``score_run`` for one pose estimate per frame (anything with ``T_world_camera`` and
     ``covariance``, such as the tracker's ``PoseEstimate``; None for a frame without a
