@@ -7,11 +7,12 @@ are therefore the same edge-aligned poses with the same checks. Per image:
 * search: the tag regions predicted from a prior pose (decimated, fast; a tag missed there
   is searched again in a masked region, everything outside its predicted quiet zone
   painted white); the full frame (decimate 3) when they give fewer tags than last time,
-  if the caller allows a full search; after a full-frame pose, the masked regions of tags
-  the pose says are in view but were not found; finer full-frame passes when the coarse
-  one found nothing, or found small tags and the pose leaves a tag in view unused; when the full frame gives one face only,
-  faces whose residuals disagree or a second face too oblique, the neighbourhood of each
-  tag without decimation (recovery);
+  if the caller allows a full search, each small tag it finds decoded again in its own box
+  at a finer decimation; after a full-frame pose, the masked regions of tags the pose says
+  are in view but were not found; finer full-frame passes when the coarse one found
+  nothing, or when the pose still leaves a tag in view unused; when the full frame gives
+  one face only, faces whose residuals disagree or a second face too oblique, the
+  neighbourhood of each tag without decimation (recovery);
 * refine: corners from lines fitted to the tags' edges (``detection.refine_corners``),
   skipped in the steady state where the edge alignment replaces it;
 * pose: ``target_pose.estimate_target_pose`` (EPnP + LM, residual and oblique checks), then
@@ -61,6 +62,7 @@ from positioning.tag_search import (
 from positioning.target import Target
 from positioning.target_pose import (
     PoseOptions,
+    PoseOutcome,
     Refusal,
     count_planes,
     estimate_target_pose,
@@ -264,8 +266,9 @@ class TargetObserver:
 
     def _every_tag_in_view(self, pose: TargetPose | None) -> bool:
         """Whether ``pose`` uses every tag it puts wholly in the image facing the camera."""
-        return pose is not None and set(tags_in_view(self.target, self.calibration, pose.T_world_camera)) <= set(
-            pose.tag_ids)
+        if pose is None:
+            return False
+        return set(tags_in_view(self.target, self.calibration, pose.T_world_camera)) <= set(pose.tag_ids)
 
     def _complete(self, image: np.ndarray, detections: list[TagDetection], pose: Transform,
                   growth: float = REGION_GROWTH) -> list[TagDetection]:
@@ -406,7 +409,8 @@ class TargetObserver:
             self._warn_on_scale(detections, pose, seq)
         return Observation(pose, None, outcome.detail, seen, corners_px, self.last_search, outlines)
 
-    def _pose_of(self, image: np.ndarray, found: list[TagDetection]):
+    def _pose_of(self, image: np.ndarray, found: list[TagDetection]
+                 ) -> tuple[PoseOutcome, list[TagDetection], bool]:
         """The pose of the tags ``found`` (refined unless in the steady state), completed by
         the tags it says are in view after a full search, or recovered from single tags:
         (outcome, the detections it was posed from, steady)."""
