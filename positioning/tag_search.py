@@ -104,24 +104,37 @@ def _field_of_view_of(width: int, height: int, k_bytes: bytes, d_bytes: bytes,
     return low, high
 
 
+def _facing(target: Target, calibration: CameraCalibration, T_world_camera: Transform, cos_limit: float,
+            spread: float, min_depth_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which tags face the camera at ``T_world_camera`` (the normal within the angle of
+    ``cos_limit`` of it), with every corner ``min_depth_m`` or more in front of it and within
+    the image's field of view widened by ``spread`` of it on each side; and each tag's
+    corners in the camera frame (T, 4, 3)."""
+    T_camera_world = T_world_camera.inverse()
+    low_n, high_n = _field_of_view(calibration)
+    margin = spread * (high_n - low_n)
+    tags = target.tags
+    centres = np.array([tag.center for tag in tags])
+    normals = np.array([tag.normal for tag in tags])
+    to_camera = T_world_camera.translation - centres
+    keep = np.einsum("ij,ij->i", normals, to_camera) > cos_limit * np.linalg.norm(to_camera, axis=1)
+    in_camera = T_camera_world.apply(np.concatenate([tag.corners for tag in tags])).reshape(len(tags), 4, 3)
+    keep &= np.all(in_camera[:, :, 2] > min_depth_m, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = in_camera[:, :, :2] / in_camera[:, :, 2:]
+    keep &= np.all((xn >= low_n - margin) & (xn <= high_n + margin), axis=(1, 2))
+    return keep, in_camera
+
+
 def tags_in_view(target: Target, calibration: CameraCalibration, T_world_camera: Transform) -> list[int]:
     """The tags wholly in the image at ``T_world_camera`` and facing the camera, however
     obliquely: every corner in front of it, within the field of view, and inside the image."""
-    T_camera_world = T_world_camera.inverse()
-    low_n, high_n = _field_of_view(calibration)
+    keep, in_camera = _facing(target, calibration, T_world_camera, 0.0, 0.0, 0.0)
     inside = []
-    for tag in target.tags:
-        if tag.normal @ (T_world_camera.translation - tag.center) <= 0.0:
-            continue
-        corners = T_camera_world.apply(tag.corners)
-        if np.any(corners[:, 2] <= 0.0):
-            continue
-        xn = corners[:, :2] / corners[:, 2:]
-        if np.any((xn < low_n) | (xn > high_n)):
-            continue
-        pixels = project(corners, calibration)
+    for index in np.flatnonzero(keep):
+        pixels = project(in_camera[index], calibration)
         if np.all((pixels >= 0.0) & (pixels <= (calibration.width - 1, calibration.height - 1))):
-            inside.append(tag.tag_id)
+            inside.append(target.tags[index].tag_id)
     return inside
 
 
@@ -129,25 +142,14 @@ def predicted_tag_regions(target: Target, calibration: CameraCalibration, T_worl
                           growth: float = REGION_GROWTH, margin_px: int = REGION_MARGIN_PX) -> list[TagRegion]:
     """Where each tag facing the camera at ``T_world_camera`` should appear, one pixel box
     per tag, enlarged for motion; tags behind the camera or out of the image are left out."""
-    T_camera_world = T_world_camera.inverse()
-    cos_limit = np.cos(np.radians(MAX_PREDICTED_ANGLE_DEG))
-    # Far outside the field of view the distortion polynomial folds points back into the
-    # image (measured: a cube 60+ degrees off-axis gave a whole-image box, 18 ms of search
-    # per frame for nothing). Keep to a field of view half as wide again as the image's
-    # (its border's rays: a fisheye's reach far beyond what its focal length alone says).
-    low_n, high_n = _field_of_view(calibration)
-    spread = 0.25 * (high_n - low_n)
+    # Not seen edge-on or from behind, in front of the camera, and near the field of view:
+    # far outside it the distortion polynomial folds points back into the image (measured:
+    # a cube 60+ degrees off-axis gave a whole-image box, 18 ms of search per frame for
+    # nothing). Kept to a field of view half as wide again as the image's (its border's
+    # rays: a fisheye's reach far beyond what its focal length alone says).
+    keep, in_camera = _facing(target, calibration, T_world_camera, np.cos(np.radians(MAX_PREDICTED_ANGLE_DEG)),
+                              0.25, 0.05)
     tags = target.tags
-    centres = np.array([tag.center for tag in tags])
-    normals = np.array([tag.normal for tag in tags])
-    to_camera = T_world_camera.translation - centres
-    # not seen edge-on or from behind, in front of the camera, and near the field of view
-    keep = np.einsum("ij,ij->i", normals, to_camera) > cos_limit * np.linalg.norm(to_camera, axis=1)
-    in_camera = T_camera_world.apply(np.concatenate([tag.corners for tag in tags])).reshape(len(tags), 4, 3)
-    keep &= np.all(in_camera[:, :, 2] > 0.05, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xn = in_camera[:, :, :2] / in_camera[:, :, 2:]
-    keep &= np.all((xn >= low_n - spread) & (xn <= high_n + spread), axis=(1, 2))
     chosen = np.flatnonzero(keep)
     if len(chosen) == 0:
         return []
