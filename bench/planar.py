@@ -108,12 +108,16 @@ def renders(views: int, jobs: int) -> str:
         both = [(a, b) for a, b in result if b is not None]
         ours_where_both = [a for a, _ in both if a is not None]
         theirs_where_ours = [b for a, b in both if a is not None]
+        theirs_alone = np.asarray([b for a, b in both if a is None]) * 1000.0
+        alone = f"{len(theirs_alone)}: {np.median(theirs_alone):.0f} / {theirs_alone.max():.0f}" \
+            if len(theirs_alone) else "0"
         rows.append([camera, board, "off" if off else "true", str(len(result)), str(len(both)),
                      str(sum(a is not None for a, _ in result)), _spread(ours_where_both),
-                     _spread(theirs_where_ours)])
+                     _spread(theirs_where_ours), alone])
     return markdown_table(
         ["camera", "board", "calibration", "views", "SQPnP posed", "cubeloc posed",
-         "cubeloc mm (median / p90 / max)", "SQPnP mm, same views"], rows)
+         "cubeloc mm (median / p90 / max)", "SQPnP mm, same views",
+         "posed by SQPnP alone: views, its mm (median / max)"], rows)
 
 
 def _row_lines_rms(corners: dict[int, np.ndarray], cols: int, calibration) -> float:
@@ -248,5 +252,6 @@ def run() -> str:
     views = int(os.environ.get("CUBELOC_BENCH_PLANAR_VIEWS", "120"))
     jobs = int(os.environ.get("CUBELOC_BENCH_PLANAR_JOBS", "2"))
     return (f"Board renders, {views} seeded views a case (errors in mm of the camera position, "
-            f"median / 90th percentile / max, on the views both posed):\n\n{renders(views, jobs)}\n\n"
+            f"median / 90th percentile / max, on the views both posed; the last column: the views SQPnP "
+            f"posed and cubeloc refused, and how far off SQPnP was there):\n\n{renders(views, jobs)}\n\n"
             f"The real AprilGrid frames:\n\n{real_frames()}\n\nThe fisheye frames:\n\n{fisheye_frames()}")
