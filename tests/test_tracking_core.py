@@ -147,11 +147,14 @@ def ate(poses: list[Transform], outputs, start: int = 0) -> float:
 
 # ---------------------------------------------------------------------------- initialiser
 def init_frame(source: SyntheticTracks, pose: Transform, ids: np.ndarray, planes: int = 3,
-               with_pose: bool = True, claimed: Transform | None = None) -> InitFrame:
-    """Observations from ``pose``; the target pose given is ``claimed`` (default: the true one)."""
+               with_pose: bool = True, claimed: Transform | None = None, sigma_m: float | None = None
+               ) -> InitFrame:
+    """Observations from ``pose``; the target pose given is ``claimed`` (default: the true
+    one), ``sigma_m`` its position's standard deviation on each axis (None: unknown)."""
     pc = pose.inverse().apply(source.points[ids])
     xn = pc[:, :2] / pc[:, 2:] + source.rng.normal(0, 0.3 / CAL.fx, (len(ids), 2))
-    return InitFrame(0, (claimed or pose) if with_pose else None, planes, ids, xn)
+    covariance = None if sigma_m is None else np.eye(3) * sigma_m**2
+    return InitFrame(0, (claimed or pose) if with_pose else None, planes, ids, xn, covariance)
 
 
 def visible_ids(source: SyntheticTracks, poses: list[Transform]) -> np.ndarray:
@@ -192,6 +195,24 @@ def test_initialiser_refuses_with_a_reason_then_triangulates_metric_points():
     others = np.setdiff1d(np.arange(len(source.points)), ids)[:10]
     assert init.step(init_frame(source, b, others)).status is InitStatus.TOO_FEW_MATCHES
     assert init.reference is None
+
+
+def test_a_pair_whose_target_poses_measure_its_baseline_poorly_begins_no_map():
+    """Two target poses 40 mm unsure on each axis, 10 cm apart, give the map's scale to
+    57 %: refused (``max_scale_std``, 50 %) before any parallax is weighed; 30 cm apart
+    (19 %), the map begins."""
+    source = SyntheticTracks(room_points(1), seed=2)
+    a = look_at(np.array([-1.5, -1.8, 0.5]), np.zeros(3))
+    near = look_at(np.array([-1.4, -1.8, 0.5]), np.zeros(3))
+    far = look_at(np.array([-1.2, -1.8, 0.5]), np.zeros(3))
+    ids = visible_ids(source, [a, near, far])
+    init = Initialiser(InitOptions(), CAL.fx)
+    assert init.step(init_frame(source, a, ids, sigma_m=0.04)).status is InitStatus.REFERENCE_SET
+    refused = init.step(init_frame(source, near, ids, sigma_m=0.04))
+    assert refused.status is InitStatus.UNCERTAIN_BASELINE, refused.detail
+    assert "known to 57 %" in refused.detail
+    ok = init.step(init_frame(source, far, ids, sigma_m=0.04))
+    assert ok.status is InitStatus.INITIALISED, ok.detail
 
 
 def test_a_target_that_leaves_before_the_median_parallax_initialises_on_its_longest_baseline():

@@ -81,7 +81,7 @@ class MapBeginning:
             # published, but too uncertain to fix the map's scale and frame
             return TrackerOutput(FrameResult(estimate, status, "initialising: target pose too uncertain to anchor"),
                                  False, empty, InitStatus.UNCERTAIN_TARGET_POSE, frame=frame)
-        init = InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, tracks.ids, xn)
+        init = InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, tracks.ids, xn, trusted.position_covariance)
         if self.initialiser.reference is None:
             # Algorithm 1 runs on this frame once the front end has added fresh corners
             return TrackerOutput(FrameResult(estimate, status, "initialising: reference frame"), True, empty,
@@ -132,6 +132,7 @@ class MapBeginning:
         kf_b = self.map.add_keyframe(b.stamp_ns, b.T_world_camera, b.track_ids, b.xn,
                                      target_b.corners_world, undistort(target_b.corners_px, self.calibration))
         kf_a.anchor_covariance, kf_b.anchor_covariance = ta.position_covariance, target_b.position_covariance
+        self._drift.begun_on(kf_a.anchor_covariance, kf_b.anchor_covariance)
         for track_id, point in zip(result.track_ids, result.points_world, strict=True):
             self.map.add_point(int(track_id), point, kf_a.kf_id)
         self.initialised, self.lost = True, False
@@ -182,7 +183,7 @@ class MapBeginning:
         (the anchored keyframes take it from here)."""
         earlier, stamp_ns = self._best_target, frame.stamp_ns
         result = self.initialiser.step(InitFrame(stamp_ns, trusted.T_world_camera, trusted.planes, frame.tracks.ids,
-                                                 frame.xn))
+                                                 frame.xn, trusted.position_covariance))
         if result.status is not InitStatus.INITIALISED:
             return None
         self._start_map(result, trusted if result.frame.stamp_ns == stamp_ns else earlier)

@@ -152,6 +152,16 @@ class Drift:
         claimed). Conservative: the target's own noise is in it, on each axis."""
         self._agreement.append(distance_m)
 
+    def begun_on(self, *covariances: np.ndarray | None) -> None:
+        """The map begins on target poses of these position covariances (3, 3): until the
+        next trusted target pose (``reset``, where the map's agreement with it takes over),
+        a pose on the map is no surer than they are (the largest standard deviation among
+        them, on each axis)."""
+        known = [np.asarray(c) for c in covariances if c is not None]
+        if known:
+            sigma = max(float(np.sqrt(max(np.max(np.linalg.eigvalsh(c)), 0.0))) for c in known)
+            self.floor_m = max(self.floor_m, sigma)
+
     def reset(self) -> None:
         """The target is trusted again: nothing has drifted since."""
         self.path_m = self.turned_rad = self.scaled_m = self.scale_var = 0.0

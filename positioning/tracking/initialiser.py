@@ -45,6 +45,7 @@ class InitStatus(str, enum.Enum):
     TOO_FEW_MATCHES = "too_few_matches"  # fewer than min_points tracks survive from A to B
     TOO_LITTLE_PARALLAX = "too_little_parallax"  # median parallax A<->B below the minimum
     TOO_FEW_POINTS = "too_few_points"  # triangulation left min_points or fewer good points
+    UNCERTAIN_BASELINE = "uncertain_baseline"  # the two target poses measure their baseline too poorly
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,7 @@ class InitFrame:
     planes: int
     track_ids: np.ndarray  # (N,) int64
     xn: np.ndarray  # (N, 2) normalised coordinates
+    position_covariance: np.ndarray | None = None  # (3, 3) of the target pose, None: unknown
 
 
 @dataclass(frozen=True)
@@ -145,6 +147,12 @@ class Initialiser:
                 detail += f"; on the longest baseline, {result.detail}"
             self.reference, self.best = None, None
             return InitResult(InitStatus.TOO_FEW_MATCHES, detail)
+        scale_std = baseline_scale_std(a, frame)
+        if scale_std > self.options.max_scale_std:
+            return InitResult(
+                InitStatus.UNCERTAIN_BASELINE,
+                f"the baseline known to {100 * scale_std:.0f} %, {100 * self.options.max_scale_std:.0f} % needed",
+                a)
         xa, xb = a.xn[ia], frame.xn[ib]
         parallax = rotation_compensated_parallax_deg(a.T_world_camera, frame.T_world_camera, xa, xb)
         median = float(np.median(parallax))
@@ -182,6 +190,29 @@ class Initialiser:
             + ("" if median_test else " (the target's longest baseline)"),
             a, common[result.good], result.points_world[result.good], median, frame,
         )
+
+
+def baseline_scale_std(a: InitFrame, b: InitFrame) -> float:
+    """The relative standard deviation of the baseline between two target poses (the scale
+    a map begun on them has): their position covariances along it, sqrt(b^T (C_a + C_b) b)
+    / |b|^2; 0 when either covariance is unknown.
+
+    >>> import numpy as np
+    >>> from positioning.geometry import Transform
+    >>> cov = np.eye(3) * 0.01**2  # 10 mm on each axis
+    >>> a = InitFrame(0, Transform.identity(), 2, np.zeros(0, np.int64), np.zeros((0, 2)), cov)
+    >>> b = InitFrame(1, Transform(np.eye(3), np.array([0.1, 0.0, 0.0])), 2, np.zeros(0, np.int64),
+    ...               np.zeros((0, 2)), cov)
+    >>> round(baseline_scale_std(a, b), 3)  # 14 mm over 100 mm
+    0.141
+    """
+    if a.position_covariance is None or b.position_covariance is None:
+        return 0.0
+    baseline = b.T_world_camera.translation - a.T_world_camera.translation
+    squared = float(baseline @ baseline)
+    if squared <= 0.0:
+        return float("inf")
+    return float(np.sqrt(baseline @ (a.position_covariance + b.position_covariance) @ baseline)) / squared
 
 
 def out_of_view(pose: Transform, points_world: np.ndarray, calibration: CameraCalibration) -> bool:

@@ -57,6 +57,11 @@ class InitOptions:
     # anchor only from the stricter ``anchor_max_position_std_m``, since an anchor bends the
     # map to itself. (Measured behind a wide lens: docs/notes/2026-12-05-tracker-options.md.)
     max_position_std_m: float = 0.010
+    # The pair's baseline as its two target poses measure it (their position covariances
+    # along it) is known to this relative standard deviation at least: the scale the map
+    # begins with (its anchors refine it). Two poses a centimetre apart, each 40 mm unsure,
+    # begin no map, whatever "parallax" their rotations' noise makes.
+    max_scale_std: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -139,6 +144,9 @@ class TrackerOptions:
     # target
     anchor_max_reproj_px: float = 0.25  # a target pose fitting worse (a grazing face) anchors no keyframe
     anchor_max_position_std_m: float = 0.005  # ...nor one whose covariance says it is this uncertain
+    # A camera that has never given a pose within both bounds above (a small lens, a far
+    # target) is held instead to this times the surest pose and the best fit it has given
+    anchor_best_ratio: float = 2.0
     relocalised_jump_m: float = 0.01  # a target pose this far from the tracker's: a visible jump
     relocalised_jump_deg: float = 1.0
     fuse_target_with_map: bool = False  # target visible: one pose from its corners and the map points

@@ -79,6 +79,12 @@ class Tracker(MapBeginning, LoopClosure):
         self.bundle_runs: list[bundle.BundleSolution] = []  # the last few, for benchmarks and tests
         self.odometry = odometry  # wheel odometry, when the robot gives it (kept on reset)
         self.motion = MotionModel(self.options)
+        # the surest target pose this camera has given (position standard deviation, and
+        # its corners' fit), and whether one ever met the anchor bounds: a camera that never
+        # did is held to what it can do instead (``_anchors``); kept through reset, as they
+        # are the camera's and the target's
+        self._surest_target_m, self._best_target_fit_px = np.inf, np.inf
+        self._bounds_reached = False
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -131,6 +137,13 @@ class Tracker(MapBeginning, LoopClosure):
     def _step(self, frame: TrackedFrame) -> TrackerOutput:
         stamp_ns, tracks, xn, target = frame.stamp_ns, frame.tracks, frame.xn, frame.target
         trusted = target if target is not None and target.planes >= self.options.init.min_planes else None
+        if trusted is not None:  # (no covariance: taken as sure, as ``_anchors`` takes it)
+            sigma = position_sigma(trusted.covariance)
+            self._best_target_fit_px = min(self._best_target_fit_px, trusted.reproj_rms_px)
+            self._surest_target_m = min(self._surest_target_m, sigma)
+            self._bounds_reached = self._bounds_reached or (
+                sigma <= self.options.anchor_max_position_std_m
+                and trusted.reproj_rms_px <= self.options.anchor_max_reproj_px)
         if not self.initialised:
             return self._initialising(frame, trusted)
 
@@ -254,7 +267,8 @@ class Tracker(MapBeginning, LoopClosure):
         if frame.keyframe is not None:
             frame.keyframe.add_observations(tracks.ids, xn)
         elif (not self.initialised or self._beginning_again) and self._anchors(frame.target):
-            init = InitFrame(frame.stamp_ns, frame.target.T_world_camera, frame.target.planes, all_ids, all_xn)
+            init = InitFrame(frame.stamp_ns, frame.target.T_world_camera, frame.target.planes, all_ids, all_xn,
+                             frame.target.position_covariance)
             if self.initialiser.try_reference(init).status is InitStatus.REFERENCE_SET:
                 self._reference_target = frame.target
         return frame
@@ -324,13 +338,22 @@ class Tracker(MapBeginning, LoopClosure):
     def _anchors(self, target: TargetObservation | None, bound: float | None = None) -> bool:
         """Is this target pose sure enough to hold a keyframe (and so the map) in place? A less sure one
         is published, not bent to; with no map to track on (before one exists, or beginning
-        again) ``init.max_position_std_m`` (none is worse). ``bound`` asks for another."""
-        if target is None or target.reproj_rms_px > self.options.anchor_max_reproj_px:
+        again) ``init.max_position_std_m`` (none is worse). ``bound`` asks for another.
+        A camera that has given target poses, none within ``anchor_max_position_std_m`` and
+        ``anchor_max_reproj_px`` (a small lens, a far target), is held to what it can do
+        where that is looser: ``anchor_best_ratio`` times the surest pose and the best
+        corner fit it has given."""
+        o = self.options
+        fit_bound, reach = o.anchor_max_reproj_px, 0.0
+        if not self._bounds_reached and np.isfinite(self._surest_target_m):
+            fit_bound = max(fit_bound, o.anchor_best_ratio * self._best_target_fit_px)
+            reach = o.anchor_best_ratio * self._surest_target_m
+        if target is None or target.reproj_rms_px > fit_bound:
             return False
         if bound is None:
             beginning = not self.initialised or self._beginning_again
-            bound = self.options.init.max_position_std_m if beginning else self.options.anchor_max_position_std_m
-        return target.covariance is None or position_sigma(target.covariance) <= bound
+            bound = o.init.max_position_std_m if beginning else o.anchor_max_position_std_m
+        return target.covariance is None or position_sigma(target.covariance) <= max(bound, reach)
 
     def jumped(self, a: Transform, b: Transform) -> bool:
         """``a`` and ``b`` further apart than ``relocalised_jump_*``: a visible correction."""
