@@ -32,7 +32,11 @@ from calib.camera_info import CameraCalibration
 from positioning.camera_model import project
 from positioning.geometry import Transform
 from positioning.tracking.options import InitOptions
-from positioning.tracking.twoview import rotation_compensated_parallax_deg, triangulate
+from positioning.tracking.twoview import (
+    baseline_scale_var,
+    rotation_compensated_parallax_deg,
+    triangulate,
+)
 
 
 class InitStatus(str, enum.Enum):
@@ -194,25 +198,12 @@ class Initialiser:
 
 def baseline_scale_std(a: InitFrame, b: InitFrame) -> float:
     """The relative standard deviation of the baseline between two target poses (the scale
-    a map begun on them has): their position covariances along it, sqrt(b^T (C_a + C_b) b)
-    / |b|^2; 0 when either covariance is unknown.
-
-    >>> import numpy as np
-    >>> from positioning.geometry import Transform
-    >>> cov = np.eye(3) * 0.01**2  # 10 mm on each axis
-    >>> a = InitFrame(0, Transform.identity(), 2, np.zeros(0, np.int64), np.zeros((0, 2)), cov)
-    >>> b = InitFrame(1, Transform(np.eye(3), np.array([0.1, 0.0, 0.0])), 2, np.zeros(0, np.int64),
-    ...               np.zeros((0, 2)), cov)
-    >>> round(baseline_scale_std(a, b), 3)  # 14 mm over 100 mm
-    0.141
-    """
+    a map begun on them has, ``twoview.baseline_scale_var``); 0 when either covariance is
+    unknown."""
     if a.position_covariance is None or b.position_covariance is None:
         return 0.0
     baseline = b.T_world_camera.translation - a.T_world_camera.translation
-    squared = float(baseline @ baseline)
-    if squared <= 0.0:
-        return float("inf")
-    return float(np.sqrt(baseline @ (a.position_covariance + b.position_covariance) @ baseline)) / squared
+    return float(np.sqrt(baseline_scale_var(baseline, a.position_covariance, b.position_covariance)))
 
 
 def out_of_view(pose: Transform, points_world: np.ndarray, calibration: CameraCalibration) -> bool:

@@ -18,7 +18,7 @@ import numpy as np
 
 from positioning.geometry import Transform
 from positioning.tracking.options import TrackerOptions
-from positioning.tracking.twoview import triangulate
+from positioning.tracking.twoview import baseline_scale_var, triangulate
 
 
 @dataclass
@@ -120,12 +120,11 @@ class Map:
         positions = np.array([kf.T_world_camera.translation for kf in anchors])
         covariances = np.array([kf.anchor_covariance for kf in anchors])
         baselines = positions[None, :, :] - positions[:, None, :]  # (n, n, 3): j's position less i's
-        along = np.einsum("ijk,ikl,ijl->ij", baselines, covariances, baselines)  # b^T C_i b
-        squared = np.einsum("ijk,ijk->ij", baselines, baselines)
-        upper = np.triu(squared > 0.0, k=1)
+        variances = baseline_scale_var(baselines, covariances[:, None], covariances[None, :])
+        upper = np.triu(np.isfinite(variances), k=1)
         if not upper.any():
             return 0.0
-        return float(np.min((along + along.T)[upper] / squared[upper] ** 2))
+        return float(np.min(variances[upper]))
 
     def add_point(self, track_id: int, position: np.ndarray, birth_kf: int) -> None:
         self.points[int(track_id)] = np.asarray(position, np.float64).reshape(3).copy()
