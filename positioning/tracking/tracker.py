@@ -408,7 +408,7 @@ class Tracker(MapBeginning, LoopClosure):
             self._bundle_due = True  # one at a time: the next run starts when this one ends
             return
         self._bundle_due = False
-        problem = bundle.build_problem(self.map, self.options.bundle)
+        problem = bundle.build_problem(self.map, self.options.bundle, self.options.max_keyframes)
         if problem is None:
             return
         if not self.options.bundle.background:
