@@ -229,6 +229,14 @@ def test_the_window_keeps_the_newest_anchored_keyframes_that_share_its_points():
     assert len(problem.tgt_kf) == 3 * 4  # the corners of the three adjusted anchored keyframes
     plain = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=0))
     assert sorted(plain.kf_ids[plain.free].tolist()) == [4, 5, 6, 7, 8, 9] and len(plain.tgt_kf) == 0
+    # only the newest eight are the map's working set (the rest places kept for loop
+    # closure): the newest anchored keyframe in it joins, the older ones hold nothing
+    recent = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=1), recent=8)
+    free = dict(zip(recent.kf_ids.tolist(), recent.free.tolist(), strict=True))
+    assert free == {0: False, 1: False, 2: False, 3: True, 4: True, 5: True, 6: True, 7: True, 8: True, 9: True}
+    assert len(recent.tgt_kf) == 4
+    places = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=3), recent=6)
+    assert sorted(places.kf_ids[places.free].tolist()) == [4, 5, 6, 7, 8, 9] and len(places.tgt_kf) == 0
 
 
 def test_a_late_solution_carries_the_keyframes_and_points_built_meanwhile():
