@@ -86,10 +86,11 @@ class BundleSolution:
 def build_problem(world_map: Map, options: BundleOptions, recent: int | None = None) -> BundleProblem | None:
     """The last ``window_keyframes`` keyframes and their points, the newest
     ``anchored_keyframes`` older anchored keyframes seeing those points (also adjusted, held
-    by the target's corners) among the newest ``recent`` keyframes (None: among all), and
-    every other keyframe seeing those points (held fixed). Keyframes kept beyond ``recent``
-    (places kept for loop closure) hold no window by the target: their few long-lived points
-    would tie it to the target long after it left. None when there is nothing to adjust."""
+    by the target's corners) among the newest ``recent`` keyframes the tracker made (None:
+    among all; a loaded map's keyframes always count), and every other keyframe seeing those
+    points (held fixed). Keyframes kept beyond ``recent`` (places kept for loop closure) hold
+    no window by the target: their few long-lived points would tie it to the target long
+    after it left. None when there is nothing to adjust."""
     keyframes = list(world_map.keyframes.values())
     window = keyframes[-options.window_keyframes:]
     if len(window) < 2:
@@ -105,8 +106,10 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     if not point_ids_set:
         return None
     older = keyframes[: -options.window_keyframes]
-    working = older if recent is None else keyframes[max(len(keyframes) - recent, 0): -options.window_keyframes]
-    extra = [kf for kf in working if kf.anchored and any(int(t) in point_ids_set for t in kf.track_ids)]
+    built = [kf.kf_id for kf in keyframes if kf.kf_id not in world_map.fixed]
+    places = set(built[: max(len(built) - recent, 0)]) if recent is not None else set()
+    extra = [kf for kf in older if kf.anchored and kf.kf_id not in places
+             and any(int(t) in point_ids_set for t in kf.track_ids)]
     extra = extra[len(extra) - options.anchored_keyframes:] if options.anchored_keyframes else []
     window = extra + window
     window_ids = {kf.kf_id for kf in window}
