@@ -92,6 +92,11 @@ class PositioningConfig(Section):
     # the tracker: when the view comes back to a place mapped long ago, move the map being
     # tracked onto it (docs/tracker.md, "Loop closure"; off: not yet honest on the family)
     loop_closure: bool = False
+    # the tracker: once the cube has left the view, hold the map's scale to the floor it
+    # measured, when the camera kept its height while the cube was in view (a wheeled robot)
+    # and a textured floor was seen (docs/tracker.md, "The floor"; off: it moves the family
+    # both ways)
+    floor: bool = False
 
 
 class ZenohConfig(Section):

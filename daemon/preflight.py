@@ -120,7 +120,7 @@ def pose_options(config: Config) -> PoseOptions:
 
 def processor_options(config: Config, max_keyframes: int | None = None, **bundle_changes) -> ProcessorOptions:
     """The tracker's options as ``config`` sets them (``pose_options``, ``[positioning]
-    loop_closure``), with at most ``max_keyframes`` keyframes (None: the tracker's own) and
+    loop_closure`` and ``floor``), with at most ``max_keyframes`` keyframes (None: the tracker's own) and
     bundle adjustment's options changed by ``bundle_changes`` (``background=False``: in
     the frame loop, every replay alike). The daemon, ``cubeloc track`` and the benchmarks
     all take their options from here."""
@@ -129,8 +129,9 @@ def processor_options(config: Config, max_keyframes: int | None = None, **bundle
     from positioning.tracking import ProcessorOptions
 
     defaults = ProcessorOptions()
+    floor = replace(defaults.tracker.bundle.floor, enabled=config.positioning.floor)
     tracker = replace(defaults.tracker, loop_closure=config.positioning.loop_closure,
-                      bundle=replace(defaults.tracker.bundle, **bundle_changes))
+                      bundle=replace(defaults.tracker.bundle, floor=floor, **bundle_changes))
     if max_keyframes is not None:
         tracker = replace(tracker, max_keyframes=max_keyframes)
     return replace(defaults, pose=pose_options(config), tracker=tracker)

@@ -32,7 +32,7 @@ against what holds it (``_scale_var``): the drift a tracking pose claims grows b
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -43,8 +43,9 @@ from threadpoolctl import ThreadpoolController
 
 from positioning.geometry import Transform, robust_sigma, skew
 from positioning.tracking import schur_lm
+from positioning.tracking.floor import Floor
 from positioning.tracking.map import Map
-from positioning.tracking.options import BundleOptions
+from positioning.tracking.options import BundleOptions, FloorOptions
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,19 @@ class BundleProblem:
     tgt_kf: np.ndarray  # (C,) index into kf_ids of the target corner observations
     tgt_world: np.ndarray  # (C, 3) fixed world corners
     tgt_xn: np.ndarray  # (C, 2)
+    # The floor, when it holds the window (the target does not): points held to its height
+    # (index into point_ids), free keyframes held to the camera's, and the older keyframes
+    # sharing the window's points, free in height and held where they are otherwise (index
+    # into kf_ids)
+    floor: Floor | None = None
+    floor_pt: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    height_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    older_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def held_by_target(self) -> bool:
+        """The target's corners (or a loaded map's points) hold the window."""
+        return bool(len(self.tgt_kf))
 
 
 @dataclass(frozen=True)
@@ -83,14 +97,18 @@ class BundleSolution:
     held_by_target: bool = False  # the target's corners hold the window (its scale is the target's)
 
 
-def build_problem(world_map: Map, options: BundleOptions, recent: int | None = None) -> BundleProblem | None:
+def build_problem(world_map: Map, options: BundleOptions, recent: int | None = None,
+                  floor: Floor | None = None) -> BundleProblem | None:
     """The last ``window_keyframes`` keyframes and their points, the newest
     ``anchored_keyframes`` older anchored keyframes seeing those points (also adjusted, held
     by the target's corners) among the newest ``recent`` keyframes the tracker made (None:
     among all; a loaded map's keyframes always count), and every other keyframe seeing those
     points (held fixed). Keyframes kept beyond ``recent`` (places kept for loop closure) hold
     no window by the target: their few long-lived points would tie it to the target long
-    after it left. None when there is nothing to adjust."""
+    after it left. A window neither the target nor a loaded map holds is held by the
+    ``floor`` when there is one (floor.py): its points near the floor to the floor's height,
+    its keyframes to the camera's, and the older keyframes sharing its points adjusted with
+    it in height. None when there is nothing to adjust."""
     keyframes = list(world_map.keyframes.values())
     window = keyframes[-options.window_keyframes:]
     if len(window) < 2:
@@ -126,6 +144,12 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     if not any(kf.anchored for kf in window) and free.all():
         # no target and no older keyframe: hold the two oldest of the window (gauge)
         free[: min(2, len(used) - 1)] = False
+    on_floor = (floor is not None and options.floor.enabled and not reference
+                and not any(kf.anchored for kf, f in zip(used, free, strict=True) if f))
+    # the older keyframes that move with the window in height (anchored ones stay: the target's)
+    older = np.array([k < len(fixed_outside) and on_floor and not kf.anchored and kf.kf_id not in world_map.fixed
+                      for k, kf in enumerate(used)], dtype=bool)
+    free = free | older
     obs_kf, obs_pt, obs_xn = [], [], []
     tgt_kf, tgt_world, tgt_xn = [], [], []
     for k, kf in enumerate(used):
@@ -145,14 +169,20 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
                 tgt_kf.extend([k] * len(rows))
                 tgt_world.append(np.array([world_map.points[int(kf.track_ids[i])] for i in rows]))
                 tgt_xn.append(kf.xn[rows])
+    points = np.array([world_map.points[int(p)] for p in point_ids])
+    floor_pt = height_kf = older_kf = np.zeros(0, np.int64)
+    if on_floor:
+        floor_pt = _on_the_floor(points[:, 2], floor, options.floor)
+        height_kf, older_kf = np.flatnonzero(free), np.flatnonzero(older)
     return BundleProblem(
+        floor=floor if on_floor else None, floor_pt=floor_pt, height_kf=height_kf, older_kf=older_kf,
         epoch=world_map.epoch,
         points_added=world_map.points_added,
         kf_ids=np.array([kf.kf_id for kf in used], dtype=np.int64),
         T_camera_world=tuple(kf.T_world_camera.inverse() for kf in used),
         free=free,
         point_ids=point_ids,
-        points=np.array([world_map.points[int(p)] for p in point_ids]),
+        points=points,
         obs_kf=np.array(obs_kf, dtype=np.int64),
         obs_pt=np.array(obs_pt, dtype=np.int64),
         obs_xn=np.array(obs_xn).reshape(-1, 2),
@@ -160,6 +190,20 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
         tgt_world=np.concatenate(tgt_world) if tgt_world else np.zeros((0, 3)),
         tgt_xn=np.concatenate(tgt_xn) if tgt_xn else np.zeros((0, 2)),
     )
+
+
+def _on_the_floor(heights: np.ndarray, floor: Floor, options: FloorOptions) -> np.ndarray:
+    """The window's points on the floor: its own floor layer, found near the floor's height
+    (within ``band`` of the camera's height above it, however far the window's scale has
+    walked) and as thin as ``find_floor``'s, about the median of the points there. A map off
+    in scale has its whole floor layer off together; a point a few centimetres up a wall or a
+    box lies apart from it, and pulled down to the floor would pull the map with it."""
+    above = floor.camera_z - floor.floor_z
+    near = np.abs(heights - floor.floor_z) < options.band * above
+    if not near.any():
+        return np.zeros(0, np.int64)
+    level = float(np.median(heights[near]))
+    return np.flatnonzero(near & (np.abs(heights - level) <= options.layer_thickness * above / 2))
 
 
 # The matrices here are small: OpenBLAS's threads gain nothing on them, and between calls
@@ -179,7 +223,7 @@ def solve(problem: BundleProblem, options: BundleOptions, fx: float, sigma_px: f
 def _solve(problem: BundleProblem, options: BundleOptions, fx: float, sigma_px: float | None = None
            ) -> BundleSolution:
     started = time.perf_counter()
-    model = _Model(problem, fx, options.target_weight)
+    model = _Model(problem, fx, options.target_weight, options.floor)
     x = np.zeros(6 * model.n_free + 3 * model.n_points)
     initial = model.residuals(x)
     # Robustness by iteratively reweighted least squares: SciPy's own Huber loss converges
@@ -218,7 +262,7 @@ def _solve(problem: BundleProblem, options: BundleOptions, fx: float, sigma_px: 
         evaluations=evaluations,
         seconds=time.perf_counter() - started,
         scale_var=scale_var,
-        held_by_target=bool(len(problem.tgt_kf)),
+        held_by_target=problem.held_by_target,
     )
 
 
@@ -236,9 +280,10 @@ def _scale_var(model: _Model, x: np.ndarray, options: BundleOptions, rotations: 
     residuals = model.residuals(x)
     per_pair = np.linalg.norm(residuals.reshape(-1, 2), axis=1)
     weights = np.sqrt(np.minimum(1.0, options.huber_px / np.maximum(per_pair, 1e-12)))
-    obs_w, tgt_w = weights[: model.n_obs, None, None], weights[model.n_obs:, None, None]
+    n = model.n_point_pairs
+    obs_w, tgt_w = weights[:n, None, None], weights[n:, None, None]
     j_pose, j_point, j_tgt = model.jacobian_blocks(x)
-    blocks = (j_pose * obs_w[p.free[p.obs_kf]], j_point * obs_w, j_tgt * tgt_w)
+    blocks = (j_pose * obs_w[: model.n_obs][p.free[p.obs_kf]], j_point * obs_w, j_tgt * tgt_w)
     k = int(np.flatnonzero(p.free)[-1])
     centre = -rotations[k].T @ translations[k]
     rays = points - centre
@@ -251,13 +296,23 @@ def _scale_var(model: _Model, x: np.ndarray, options: BundleOptions, rotations: 
 
 class _Model:
     """The problem's residuals (pixels) and Jacobian as functions of the update ``x``:
-    6 per free pose (rotation vector, translation), then 3 per point."""
+    6 per free pose (rotation vector, translation), then 3 per point.
 
-    def __init__(self, problem: BundleProblem, fx: float, target_weight: float) -> None:
+    Residual pairs, in order: the observations; the floor points' heights (``(dz, 0)``,
+    each on its point alone); the target's corners; the free keyframes' heights
+    (``(dz, 0)``); per older keyframe on the floor three pairs, its rotation update and its
+    move along the floor (each on its pose alone)."""
+
+    def __init__(self, problem: BundleProblem, fx: float, target_weight: float,
+                 floor: FloorOptions | None = None) -> None:
         self.problem, self.fx, self.target_weight = problem, fx, target_weight
+        floor = floor or FloorOptions()
+        self.floor_w, self.camera_w = floor.floor_px_per_m, floor.camera_px_per_m
+        self.older_w = floor.older_px_per_mm * 1000.0  # per metre and per radian
         self.n_free = int(problem.free.sum())
         self.n_points = len(problem.point_ids)
         self.n_obs = len(problem.obs_kf)
+        self.n_point_pairs = self.n_obs + len(problem.floor_pt)  # the pairs on a point
         self.free_index = -np.ones(len(problem.kf_ids), dtype=np.int64)
         self.free_index[problem.free] = np.arange(self.n_free)
         self.r0 = np.array([t.rotation for t in problem.T_camera_world])  # (K, 3, 3)
@@ -283,36 +338,70 @@ class _Model:
         tc = np.einsum("nij,nj->ni", rotations[p.tgt_kf], p.tgt_world) + translations[p.tgt_kf]
         zt = np.where(np.abs(tc[:, 2]) < 1e-9, 1e-9, tc[:, 2])
         r_tgt = (tc[:, :2] / zt[:, None] - p.tgt_xn) * self.fx * self.target_weight
-        return np.concatenate([r_obs.ravel(), r_tgt.ravel()])
+        if p.floor is None:
+            return np.concatenate([r_obs.ravel(), r_tgt.ravel()])
+        r_floor = np.zeros((len(p.floor_pt), 2))
+        r_floor[:, 0] = (points[p.floor_pt, 2] - p.floor.floor_z) * self.floor_w
+        centres = -np.einsum("nji,nj->ni", rotations, translations)  # -R^T t
+        r_height = np.zeros((len(p.height_kf), 2))
+        r_height[:, 0] = (centres[p.height_kf, 2] - p.floor.camera_z) * self.camera_w
+        r_older = np.zeros((len(p.older_kf), 3, 2))
+        turn = x[: 6 * self.n_free].reshape(-1, 6)[self.free_index[p.older_kf], :3] * self.older_w
+        r_older[:, 0], r_older[:, 1, 0] = turn[:, :2], turn[:, 2]
+        start = -np.einsum("nji,nj->ni", self.r0[p.older_kf], self.t0[p.older_kf])
+        r_older[:, 2] = (centres[p.older_kf] - start)[:, :2] * self.older_w
+        return np.concatenate([r_obs.ravel(), r_floor.ravel(), r_tgt.ravel(), r_height.ravel(), r_older.ravel()])
 
     @cached_property
     def structure(self) -> schur_lm.BlockStructure:
         """Which free pose and point each residual pair depends on (our solver's view)."""
         p = self.problem
-        return schur_lm.BlockStructure(self.n_free, self.n_points, self.free_index[p.obs_kf], p.obs_pt,
-                                       self.free_index[p.tgt_kf])
+        return schur_lm.BlockStructure(
+            self.n_free, self.n_points,
+            np.concatenate([self.free_index[p.obs_kf], -np.ones(len(p.floor_pt), np.int64)]),
+            np.concatenate([p.obs_pt, p.floor_pt]),
+            np.concatenate([self.free_index[p.tgt_kf], self.free_index[p.height_kf],
+                            np.repeat(self.free_index[p.older_kf], 3)]))
 
     @cached_property
     def jacobian_pattern(self) -> tuple[np.ndarray, np.ndarray]:
         """Rows and columns of the Jacobian's entries (SciPy's sparse view)."""
-        return _jacobian_pattern(self.problem, self.free_index, self.n_free, self.n_points)
+        return _jacobian_pattern(self.structure)
 
     def jacobian_blocks(self, x: np.ndarray) -> schur_lm.JacobianBlocks:
+        p = self.problem
         deltas = x[: 6 * self.n_free].reshape(self.n_free, 6)
-        return _jacobian_blocks(self.problem, deltas, *self.unpack(x), self.fx, self.target_weight)
+        rotations, translations, points = self.unpack(x)
+        blocks = _jacobian_blocks(p, deltas, rotations, translations, points, self.fx, self.target_weight)
+        if p.floor is None:
+            return blocks
+        j_pose, j_point, j_tgt = blocks
+        j_floor = np.zeros((len(p.floor_pt), 2, 3))
+        j_floor[:, 0, 2] = self.floor_w
+        # a camera centre c = -R^T t moves by -R^T dt - R^T [t]x dw (the update exp(dw) R)
+        r_t = rotations.transpose(0, 2, 1)
+        d_centre = np.concatenate([-r_t @ skew(translations), -r_t], axis=2)  # (K, 3, 6)
+        j_height = np.zeros((len(p.height_kf), 2, 6))
+        j_height[:, 0] = d_centre[p.height_kf, 2] * self.camera_w
+        j_older = np.zeros((len(p.older_kf), 3, 2, 6))
+        j_older[:, 0, 0, 0] = j_older[:, 0, 1, 1] = j_older[:, 1, 0, 2] = self.older_w
+        j_older[:, 2] = d_centre[p.older_kf, :2] * self.older_w
+        return (j_pose, np.concatenate([j_point, j_floor]),
+                np.concatenate([j_tgt, j_height, j_older.reshape(-1, 2, 6)]))
 
 
 def _round_with_schur(model: _Model, x: np.ndarray, weights: np.ndarray, options: BundleOptions
                       ) -> tuple[np.ndarray, int]:
     """One weighted round with our Levenberg-Marquardt (schur_lm): (x, evaluations)."""
     p = model.problem
-    obs_w, tgt_w = weights[: model.n_obs, None, None], weights[model.n_obs:, None, None]
+    n = model.n_point_pairs
+    obs_w, tgt_w = weights[:n, None, None], weights[n:, None, None]
     posed = p.free[p.obs_kf]
     row_weights = np.repeat(weights, 2)
 
     def weighted_blocks(v: np.ndarray) -> schur_lm.JacobianBlocks:
         j_pose, j_point, j_tgt = model.jacobian_blocks(v)
-        return j_pose * obs_w[posed], j_point * obs_w, j_tgt * tgt_w
+        return j_pose * obs_w[: model.n_obs][posed], j_point * obs_w, j_tgt * tgt_w
 
     result = schur_lm.levenberg_marquardt(lambda v: model.residuals(v) * row_weights, weighted_blocks,
                                           model.structure, x, options.max_iterations, options.min_damping)
@@ -335,22 +424,21 @@ def _round_with_scipy(model: _Model, x: np.ndarray, weights: np.ndarray, options
     return result.x, int(result.nfev)
 
 
-def _jacobian_pattern(problem: BundleProblem, free_index: np.ndarray, n_free: int, n_points: int
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def _jacobian_pattern(structure: schur_lm.BlockStructure) -> tuple[np.ndarray, np.ndarray]:
     """Row and column of every structurally non-zero Jacobian entry, in the order
-    ``_jacobian_blocks`` gives them: per observation row, its pose's 6 columns (when the
-    pose is free) and its point's 3; per target-corner row, its pose's 6."""
-    n_obs, n_tgt = len(problem.obs_kf), len(problem.tgt_kf)
+    ``_Model.jacobian_blocks`` gives them: per pair on a point, its pose's 6 columns (when
+    the pose is free) and its point's 3; per pair on a pose alone, its pose's 6."""
+    n_obs, n_tgt = len(structure.obs_point), len(structure.tgt_pose)
     obs_rows = np.arange(2 * n_obs).reshape(n_obs, 2)
-    pose_cols = 6 * free_index[problem.obs_kf][:, None] + np.arange(6)  # (O, 6)
-    point_cols = 6 * n_free + 3 * problem.obs_pt[:, None] + np.arange(3)  # (O, 3)
-    has_pose = free_index[problem.obs_kf] >= 0
+    pose_cols = 6 * structure.obs_pose[:, None] + np.arange(6)  # (O, 6)
+    point_cols = 6 * structure.n_poses + 3 * structure.obs_point[:, None] + np.arange(3)  # (O, 3)
+    has_pose = structure.obs_pose >= 0
     rows = [np.broadcast_to(obs_rows[has_pose][:, :, None], (int(has_pose.sum()), 2, 6)).ravel(),
             np.broadcast_to(obs_rows[:, :, None], (n_obs, 2, 3)).ravel()]
     cols = [np.broadcast_to(pose_cols[has_pose][:, None, :], (int(has_pose.sum()), 2, 6)).ravel(),
             np.broadcast_to(point_cols[:, None, :], (n_obs, 2, 3)).ravel()]
     tgt_rows = 2 * n_obs + np.arange(2 * n_tgt).reshape(n_tgt, 2)
-    tgt_cols = 6 * free_index[problem.tgt_kf][:, None] + np.arange(6)
+    tgt_cols = 6 * structure.tgt_pose[:, None] + np.arange(6)
     rows.append(np.broadcast_to(tgt_rows[:, :, None], (n_tgt, 2, 6)).ravel())
     cols.append(np.broadcast_to(tgt_cols[:, None, :], (n_tgt, 2, 6)).ravel())
     return np.concatenate(rows), np.concatenate(cols)

@@ -65,6 +65,45 @@ class InitOptions:
 
 
 @dataclass(frozen=True)
+class FloorOptions:
+    """The floor a robot drives on (floor.py), and how bundle adjustment holds a window to it
+    once the target has left (bundle.build_problem)."""
+
+    # Off by default: on the family it takes some seeds' error down 5-35x and moves others
+    # the other way, and costs the `laps` scenario (docs/tracker.md, "The floor")
+    enabled: bool = False
+    # Found from the target poses that anchored keyframes: at least this many, the middle 80 %
+    # of their heights within this (a wheeled robot on a flat floor: ~1 mm; carried by hand:
+    # centimetres)
+    min_target_poses: int = 10
+    max_height_spread_m: float = 0.01
+    # The floor's layer of points: the lowest one holding at least min_points and min_share
+    # of the points below the camera, this thick per metre of its depth under the camera (a
+    # map's height error grows with depth as its scale and depth errors do: ~1 %, with margin)
+    layer_thickness: float = 0.03
+    min_points: int = 20
+    min_share: float = 0.25
+    min_camera_height_m: float = 0.05  # points less far below the camera are not the floor
+    # a track's two rays (the first and the last frame the target posed) meet at this or more:
+    # its depth then ~1 % sure at the tracks' ~0.3 px over a few hundred pixels of focal length
+    min_parallax_deg: float = 2.0
+    # A window's points are held to the floor when near it (within this share of the camera's
+    # height above it, however far the window's scale has walked) and in the window's own floor
+    # layer, as thick as layer_thickness (bundle._on_the_floor)
+    band: float = 0.1
+    # The priors' weights, in pixels of reprojection error: a track's noise is ~0.3 px
+    # (TrackerOptions.track_sigma_px), so 100 px/m holds a floor point to ~3 mm (the floor's
+    # flatness and a point's own error) and 300 px/m a keyframe's height to ~1 mm
+    floor_px_per_m: float = 100.0
+    camera_px_per_m: float = 300.0
+    # The older keyframes sharing the window's points (held fixed without a floor) move in
+    # height with it, and are held where they are otherwise: this many pixels per millimetre
+    # along the floor and per milliradian of turn (~0.3 mm, 0.3 mrad). Fixed, the heights
+    # they carry from earlier windows would hold every later window at the same scale.
+    older_px_per_mm: float = 1.0
+
+
+@dataclass(frozen=True)
 class BundleOptions:
     """Sliding-window bundle adjustment (bundle.py)."""
 
@@ -92,6 +131,7 @@ class BundleOptions:
     # The target's corners fit to ~0.08 px, KLT tracks to ~0.3 px over their life: weights in
     # inverse proportion of those sigmas keep the anchors in charge.
     target_weight: float = 8.0
+    floor: FloorOptions = field(default_factory=FloorOptions)
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ other source) and, when the target is in view, a trusted target pose with its co
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 from dataclasses import replace
 
@@ -55,6 +56,7 @@ from positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseSta
 from positioning.geometry import Transform
 from positioning.tracking import bundle
 from positioning.tracking.beginning import MapBeginning
+from positioning.tracking.floor import Floor, TargetView, floor_from_views
 from positioning.tracking.hold import Drift, RayHold, position_sigma
 from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
 from positioning.tracking.loop_closure import LoopClosure
@@ -113,6 +115,9 @@ class Tracker(MapBeginning, LoopClosure):
         # the rays that hold the orientation when few map points are in view; the drift since the target
         self._hold = RayHold(self.options, self.fx)
         self._drift = Drift(self.options)
+        self.floor: Floor | None = None  # the floor under the robot (floor.py), once the target shows it
+        self._target_views: collections.deque[TargetView] = collections.deque(maxlen=150)  # anchoring ones
+        self._floor_due = False  # target views came since the floor was last found
 
     def start_lost_on(self, world_map: Map) -> None:
         """Track on ``world_map`` (a saved map) from the next frame: lost on it until a
@@ -144,6 +149,10 @@ class Tracker(MapBeginning, LoopClosure):
             self._bounds_reached = self._bounds_reached or (
                 sigma <= self.options.anchor_max_position_std_m
                 and trusted.reproj_rms_px <= self.options.anchor_max_reproj_px)
+            if self.options.bundle.floor.enabled and self._anchors(trusted, self.options.anchor_max_position_std_m):
+                # the frames the floor is found in (floor.py)
+                self._target_views.append(TargetView(trusted.T_world_camera, tracks.ids.copy(), xn.copy()))
+                self._floor_due = True
         if not self.initialised:
             return self._initialising(frame, trusted)
 
@@ -408,7 +417,11 @@ class Tracker(MapBeginning, LoopClosure):
             self._bundle_due = True  # one at a time: the next run starts when this one ends
             return
         self._bundle_due = False
-        problem = bundle.build_problem(self.map, self.options.bundle, self.options.max_keyframes)
+        problem = bundle.build_problem(self.map, self.options.bundle, self.options.max_keyframes, self.floor)
+        if problem is not None and problem.held_by_target and self._floor_due and self.options.bundle.floor.enabled:
+            self._floor_due = False
+            # the target is in view: the floor as the frames it posed show it
+            self.floor = floor_from_views(self._target_views, self.options.bundle.floor) or self.floor
         if problem is None:
             return
         if not self.options.bundle.background:
