@@ -43,7 +43,7 @@ from threadpoolctl import ThreadpoolController
 
 from positioning.geometry import Transform, robust_sigma, skew
 from positioning.tracking import schur_lm
-from positioning.tracking.floor import Floor
+from positioning.tracking.floor import Floor, FloorRows, on_the_floor
 from positioning.tracking.map import Map
 from positioning.tracking.options import BundleOptions, FloorOptions
 
@@ -172,7 +172,7 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     points = np.array([world_map.points[int(p)] for p in point_ids])
     floor_pt = height_kf = older_kf = np.zeros(0, np.int64)
     if on_floor:
-        floor_pt = _on_the_floor(points[:, 2], floor, options.floor)
+        floor_pt = on_the_floor(points[:, 2], floor, options.floor)
         height_kf, older_kf = np.flatnonzero(free), np.flatnonzero(older)
     return BundleProblem(
         floor=floor if on_floor else None, floor_pt=floor_pt, height_kf=height_kf, older_kf=older_kf,
@@ -190,20 +190,6 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
         tgt_world=np.concatenate(tgt_world) if tgt_world else np.zeros((0, 3)),
         tgt_xn=np.concatenate(tgt_xn) if tgt_xn else np.zeros((0, 2)),
     )
-
-
-def _on_the_floor(heights: np.ndarray, floor: Floor, options: FloorOptions) -> np.ndarray:
-    """The window's points on the floor: its own floor layer, found near the floor's height
-    (within ``band`` of the camera's height above it, however far the window's scale has
-    walked) and as thin as ``find_floor``'s, about the median of the points there. A map off
-    in scale has its whole floor layer off together; a point a few centimetres up a wall or a
-    box lies apart from it, and pulled down to the floor would pull the map with it."""
-    above = floor.camera_z - floor.floor_z
-    near = np.abs(heights - floor.floor_z) < options.band * above
-    if not near.any():
-        return np.zeros(0, np.int64)
-    level = float(np.median(heights[near]))
-    return np.flatnonzero(near & (np.abs(heights - level) <= options.layer_thickness * above / 2))
 
 
 # The matrices here are small: OpenBLAS's threads gain nothing on them, and between calls
@@ -298,17 +284,12 @@ class _Model:
     """The problem's residuals (pixels) and Jacobian as functions of the update ``x``:
     6 per free pose (rotation vector, translation), then 3 per point.
 
-    Residual pairs, in order: the observations; the floor points' heights (``(dz, 0)``,
-    each on its point alone); the target's corners; the free keyframes' heights
-    (``(dz, 0)``); per older keyframe on the floor three pairs, its rotation update and its
-    move along the floor (each on its pose alone)."""
+    Residual pairs, in order: the observations; the floor's pairs on a point alone; the
+    target's corners; the floor's pairs on a pose alone (``floor.FloorRows``)."""
 
     def __init__(self, problem: BundleProblem, fx: float, target_weight: float,
                  floor: FloorOptions | None = None) -> None:
         self.problem, self.fx, self.target_weight = problem, fx, target_weight
-        floor = floor or FloorOptions()
-        self.floor_w, self.camera_w = floor.floor_px_per_m, floor.camera_px_per_m
-        self.older_w = floor.older_px_per_mm * 1000.0  # per metre and per radian
         self.n_free = int(problem.free.sum())
         self.n_points = len(problem.point_ids)
         self.n_obs = len(problem.obs_kf)
@@ -317,6 +298,8 @@ class _Model:
         self.free_index[problem.free] = np.arange(self.n_free)
         self.r0 = np.array([t.rotation for t in problem.T_camera_world])  # (K, 3, 3)
         self.t0 = np.array([t.translation for t in problem.T_camera_world])  # (K, 3)
+        self.floor = FloorRows(problem, self.free_index, self.r0, self.t0, floor or FloorOptions()) \
+            if problem.floor is not None else None
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rotations, translations, points) at ``x``."""
@@ -338,30 +321,21 @@ class _Model:
         tc = np.einsum("nij,nj->ni", rotations[p.tgt_kf], p.tgt_world) + translations[p.tgt_kf]
         zt = np.where(np.abs(tc[:, 2]) < 1e-9, 1e-9, tc[:, 2])
         r_tgt = (tc[:, :2] / zt[:, None] - p.tgt_xn) * self.fx * self.target_weight
-        if p.floor is None:
+        if self.floor is None:
             return np.concatenate([r_obs.ravel(), r_tgt.ravel()])
-        r_floor = np.zeros((len(p.floor_pt), 2))
-        r_floor[:, 0] = (points[p.floor_pt, 2] - p.floor.floor_z) * self.floor_w
-        centres = -np.einsum("nji,nj->ni", rotations, translations)  # -R^T t
-        r_height = np.zeros((len(p.height_kf), 2))
-        r_height[:, 0] = (centres[p.height_kf, 2] - p.floor.camera_z) * self.camera_w
-        r_older = np.zeros((len(p.older_kf), 3, 2))
-        turn = x[: 6 * self.n_free].reshape(-1, 6)[self.free_index[p.older_kf], :3] * self.older_w
-        r_older[:, 0], r_older[:, 1, 0] = turn[:, :2], turn[:, 2]
-        start = -np.einsum("nji,nj->ni", self.r0[p.older_kf], self.t0[p.older_kf])
-        r_older[:, 2] = (centres[p.older_kf] - start)[:, :2] * self.older_w
-        return np.concatenate([r_obs.ravel(), r_floor.ravel(), r_tgt.ravel(), r_height.ravel(), r_older.ravel()])
+        on_points, on_poses = self.floor.residuals(x[: 6 * self.n_free].reshape(-1, 6), rotations, translations,
+                                                   points)
+        return np.concatenate([r_obs.ravel(), on_points.ravel(), r_tgt.ravel(), on_poses.ravel()])
 
     @cached_property
     def structure(self) -> schur_lm.BlockStructure:
         """Which free pose and point each residual pair depends on (our solver's view)."""
         p = self.problem
+        points, poses = (self.floor.points, self.floor.poses) if self.floor is not None else \
+            (np.zeros(0, np.int64), np.zeros(0, np.int64))
         return schur_lm.BlockStructure(
-            self.n_free, self.n_points,
-            np.concatenate([self.free_index[p.obs_kf], -np.ones(len(p.floor_pt), np.int64)]),
-            np.concatenate([p.obs_pt, p.floor_pt]),
-            np.concatenate([self.free_index[p.tgt_kf], self.free_index[p.height_kf],
-                            np.repeat(self.free_index[p.older_kf], 3)]))
+            self.n_free, self.n_points, np.concatenate([self.free_index[p.obs_kf], -np.ones(len(points), np.int64)]),
+            np.concatenate([p.obs_pt, points]), np.concatenate([self.free_index[p.tgt_kf], poses]))
 
     @cached_property
     def jacobian_pattern(self) -> tuple[np.ndarray, np.ndarray]:
@@ -373,21 +347,11 @@ class _Model:
         deltas = x[: 6 * self.n_free].reshape(self.n_free, 6)
         rotations, translations, points = self.unpack(x)
         blocks = _jacobian_blocks(p, deltas, rotations, translations, points, self.fx, self.target_weight)
-        if p.floor is None:
+        if self.floor is None:
             return blocks
         j_pose, j_point, j_tgt = blocks
-        j_floor = np.zeros((len(p.floor_pt), 2, 3))
-        j_floor[:, 0, 2] = self.floor_w
-        # a camera centre c = -R^T t moves by -R^T dt - R^T [t]x dw (the update exp(dw) R)
-        r_t = rotations.transpose(0, 2, 1)
-        d_centre = np.concatenate([-r_t @ skew(translations), -r_t], axis=2)  # (K, 3, 6)
-        j_height = np.zeros((len(p.height_kf), 2, 6))
-        j_height[:, 0] = d_centre[p.height_kf, 2] * self.camera_w
-        j_older = np.zeros((len(p.older_kf), 3, 2, 6))
-        j_older[:, 0, 0, 0] = j_older[:, 0, 1, 1] = j_older[:, 1, 0, 2] = self.older_w
-        j_older[:, 2] = d_centre[p.older_kf, :2] * self.older_w
-        return (j_pose, np.concatenate([j_point, j_floor]),
-                np.concatenate([j_tgt, j_height, j_older.reshape(-1, 2, 6)]))
+        on_points, on_poses = self.floor.jacobian(rotations, translations)
+        return j_pose, np.concatenate([j_point, on_points]), np.concatenate([j_tgt, on_poses])
 
 
 def _round_with_schur(model: _Model, x: np.ndarray, weights: np.ndarray, options: BundleOptions

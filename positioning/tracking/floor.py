@@ -2,15 +2,14 @@
 
 A camera on a wheeled robot stays at one height over a flat floor, and the floor's corners
 lie in one plane. The target measures both once, in metres: while it holds the map, the
-heights of the poses it anchored keyframes with give the camera's (the target's z is up,
-docs/target.md), and the lowest dense layer of the points their frames triangulate below the camera gives the
-floor's (each track between the first and the last of those frames that saw it: the widest
-baseline the target measured, where the map's first keyframes may be a few centimetres
-apart and their points ~1 % off in depth). Bundle
-adjustment then holds every window the target no longer holds to both
-(``bundle.build_problem``): the floor's points in view fix the window's scale, which a
-monocular map otherwise carries only by its points and which walks a few percent over tens
-of metres (docs/tracker.md, "The floor").
+heights of the poses sure enough to anchor keyframes give the camera's (the target's z is
+up, docs/target.md), and the lowest dense layer of the tracks their frames followed gives
+the floor's (each track where all its rays meet one horizontal plane: the target's whole
+baseline, where the map's first keyframes may be a few centimetres apart and their points
+~1 % off in depth). Bundle adjustment then holds every window the target no longer holds
+to both (``bundle.build_problem`` with ``on_the_floor``, ``FloorRows``): the floor's points
+in view fix the window's scale, which a monocular map otherwise carries only by its points
+and which walks a few percent over tens of metres (docs/tracker.md, "The floor").
 
 Nothing is assumed that the target does not show: a camera whose heights differ by more
 than ``FloorOptions.max_height_spread_m`` (carried by hand, or a target not
@@ -22,11 +21,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from positioning.geometry import Transform
+from positioning.geometry import Transform, skew
 from positioning.tracking.options import FloorOptions
+
+if TYPE_CHECKING:
+    from positioning.tracking.bundle import BundleProblem
 
 
 @dataclass(frozen=True)
@@ -128,3 +131,67 @@ def floor_from_views(views: Sequence[TargetView], options: FloorOptions) -> Floo
     solvable = counted[np.abs(np.linalg.det(normal[counted])) > 1e-12]
     points = np.linalg.solve(normal[solvable], rhs[solvable][:, :, None])[:, :, 0]
     return find_floor(heights, points, options)
+
+
+def on_the_floor(heights: np.ndarray, floor: Floor, options: FloorOptions) -> np.ndarray:
+    """Which of a window's points (their ``heights``) lie on the floor: its own floor layer,
+    found near the floor's height (within ``band`` of the camera's height above it, however
+    far the window's scale has walked) and as thin as ``find_floor``'s, about the median of
+    the points there. A map off in scale has its whole floor layer off together; a point a
+    few centimetres up a wall or a box lies apart from it, and pulled down to the floor would
+    pull the map with it."""
+    above = floor.camera_z - floor.floor_z
+    near = np.abs(heights - floor.floor_z) < options.band * above
+    if not near.any():
+        return np.zeros(0, np.int64)
+    level = float(np.median(heights[near]))
+    return np.flatnonzero(near & (np.abs(heights - level) <= options.layer_thickness * above / 2))
+
+
+class FloorRows:
+    """The floor's residual pairs in a bundle adjustment window (``problem.floor`` set), in
+    pixels: on a point alone, each floor point's height (``(dz, 0)``); on a pose alone, each
+    free keyframe's height (``(dz, 0)``), then per older keyframe three pairs, its rotation
+    update and its move along the floor. ``points`` and ``poses`` say which point and which
+    free pose (``free_index``) each pair is on; ``r0``, ``t0`` are the starting
+    camera-from-world poses of all the problem's keyframes."""
+
+    def __init__(self, problem: BundleProblem, free_index: np.ndarray, r0: np.ndarray, t0: np.ndarray,
+                 options: FloorOptions) -> None:
+        self.problem, self.free_index = problem, free_index
+        self.floor_w, self.camera_w = options.floor_px_per_m, options.camera_px_per_m
+        self.older_w = options.older_px_per_mm * 1000.0  # per metre and per radian
+        self.points = problem.floor_pt
+        self.poses = np.concatenate([free_index[problem.height_kf], np.repeat(free_index[problem.older_kf], 3)])
+        self.start = -np.einsum("nji,nj->ni", r0[problem.older_kf], t0[problem.older_kf])  # older centres
+
+    def residuals(self, deltas: np.ndarray, rotations: np.ndarray, translations: np.ndarray, points: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(pairs on a point, pairs on a pose) at the free poses' updates ``deltas`` ((F, 6))
+        and the problem's ``rotations``, ``translations`` (camera-from-world) and ``points``."""
+        p = self.problem
+        on_points = np.zeros((len(p.floor_pt), 2))
+        on_points[:, 0] = (points[p.floor_pt, 2] - p.floor.floor_z) * self.floor_w
+        centres = -np.einsum("nji,nj->ni", rotations, translations)  # -R^T t
+        height = np.zeros((len(p.height_kf), 2))
+        height[:, 0] = (centres[p.height_kf, 2] - p.floor.camera_z) * self.camera_w
+        older = np.zeros((len(p.older_kf), 3, 2))
+        turn = deltas[self.free_index[p.older_kf], :3] * self.older_w
+        older[:, 0], older[:, 1, 0] = turn[:, :2], turn[:, 2]
+        older[:, 2] = (centres[p.older_kf] - self.start)[:, :2] * self.older_w
+        return on_points, np.concatenate([height, older.reshape(-1, 2)])
+
+    def jacobian(self, rotations: np.ndarray, translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((P, 2, 3) of the pairs on a point, (Q, 2, 6) of the pairs on a pose)."""
+        p = self.problem
+        on_points = np.zeros((len(p.floor_pt), 2, 3))
+        on_points[:, 0, 2] = self.floor_w
+        # a camera centre c = -R^T t moves by -R^T dt - R^T [t]x dw (the update exp(dw) R)
+        r_t = rotations.transpose(0, 2, 1)
+        d_centre = np.concatenate([-r_t @ skew(translations), -r_t], axis=2)  # (K, 3, 6)
+        height = np.zeros((len(p.height_kf), 2, 6))
+        height[:, 0] = d_centre[p.height_kf, 2] * self.camera_w
+        older = np.zeros((len(p.older_kf), 3, 2, 6))
+        older[:, 0, 0, 0] = older[:, 0, 1, 1] = older[:, 1, 0, 2] = self.older_w
+        older[:, 2] = d_centre[p.older_kf, :2] * self.older_w
+        return on_points, np.concatenate([height, older.reshape(-1, 2, 6)])
