@@ -84,12 +84,19 @@ class ScriptedCamera(CameraBase):
 
 class Script:
     """Camera factory: each open takes the next step (an int: frames before the stream
-    breaks; "missing": CameraNotFound at open)."""
+    breaks; "missing": CameraNotFound at open; a ``threading.Event``: CameraNotFound at
+    every open until the test sets it, so that a phase lasts until the test has seen it,
+    however slow the machine)."""
 
     def __init__(self, image, steps, period_s=0.05):
         self.image, self.steps, self.period_s, self.log = image, list(steps), period_s, []
 
     def __call__(self, source, settings):
+        if isinstance(self.steps[0], threading.Event):
+            if not self.steps[0].is_set():
+                self.log.append("missing")
+                raise CameraNotFound("no camera until the test says (scripted)")
+            self.steps.pop(0)
         step = self.steps.pop(0) if len(self.steps) > 1 else self.steps[0]
         if step == "missing":
             self.log.append("missing")
@@ -152,11 +159,18 @@ def test_daemon_publishes_poses_status_and_answers_queries(tmp_path, cube_image,
 def test_daemon_survives_camera_loss_and_reconnects(tmp_path, cube_image, listeners):
     port = free_port()
     prepared = make_prepared(tmp_path, port)
-    # No camera at boot, then 8 frames, then the cable is pulled, gone for two tries, back.
-    script = Script(cube_image, ["missing", 8, "missing", "missing", 10_000])
+    # No camera at boot, then 8 frames, then the cable is pulled, gone for two tries, and
+    # back once the listener has seen the daemon say so (each phase gated on the listener:
+    # a loaded machine may open its subscription after a phase of a second or two is over).
+    listening, seen_reconnecting = threading.Event(), threading.Event()
+    script = Script(cube_image, [listening, 8, "missing", "missing", seen_reconnecting, 10_000])
     daemon, stop, thread, _ = start_daemon(prepared, script)
     listener = listeners(port)
     try:
+        assert listener.wait_for(lambda: any(s["state"] == "waiting" for s in listener.status), 30)
+        listening.set()
+        assert listener.wait_for(lambda: any(s["state"] == "reconnecting" for s in listener.status), 30)
+        seen_reconnecting.set()
         assert listener.wait_for(lambda: any(s["camera"]["reconnects"] >= 1 and s["state"] == "target" for s in listener.status), 30)
         states = [s["state"] for s in listener.status]
         assert "reconnecting" in states
