@@ -89,7 +89,7 @@ class FloorOptions:
     min_parallax_deg: float = 2.0
     # A window's points are held to the floor when near it (within this share of the camera's
     # height above it, however far the window's scale has walked) and in the window's own floor
-    # layer, as thick as layer_thickness (bundle._on_the_floor)
+    # layer, as thick as layer_thickness (floor.on_the_floor)
     band: float = 0.1
     # The priors' weights, in pixels of reprojection error: a track's noise is ~0.3 px
     # (TrackerOptions.track_sigma_px), so 100 px/m holds a floor point to ~3 mm (the floor's
