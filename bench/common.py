@@ -8,6 +8,7 @@ import platform
 import re
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -32,6 +33,17 @@ def machine_line() -> str:
     except OSError:
         pass
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def without_gtsam(bench: str) -> bool:
+    """True, after saying so on stderr, when GTSAM is not installed: the GTSAM benchmarks
+    need ``pip install gtsam==4.3.0``, which cubeloc does not depend on."""
+    try:
+        import gtsam  # noqa: F401
+    except ImportError:
+        print(f"{bench}: needs GTSAM (pip install gtsam==4.3.0); cubeloc does not depend on it", file=sys.stderr)
+        return True
+    return False
 
 
 def median_seconds(fn: Callable[[], object], repeats: int = 7, warmup: int = 1) -> float:

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.common import without_gtsam
+
 
 def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
     """(problem, options, fx) of the bundle adjustments the tracker ran on ``sequence``."""
@@ -144,11 +146,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--frames", type=int, default=None, help="the first N frames only")
     parser.add_argument("--iterations", type=int, default=100, help="GTSAM's iteration limit (default 100)")
     args = parser.parse_args(argv)
-    try:
-        import gtsam  # noqa: F401
-    except ImportError:
-        print("bench.gtsam_window: needs GTSAM (pip install gtsam==4.3.0); cubeloc does not depend on it",
-              file=sys.stderr)
+    if without_gtsam("bench.gtsam_window"):
         return 2
     print(compare(windows(args.sequence.resolve(), args.frames), args.iterations))
     return 0
