@@ -99,9 +99,9 @@ def record(sequence: Path, frames: int | None, options: SmootherOptions) -> tupl
         before = {int(t): p.astype(np.float64) for t, p in zip(front_end.ids, front_end.pixels, strict=True)}
         tracks = front_end.track(image, guesses if len(guesses) else None)
         previous = {int(t): before[int(t)] for t in tracks.ids if int(t) in before}
-        target, _, _ = processor._observe_target(image, entry.stamp_ns, i)
+        target, _, _ = processor.observe_target(image, entry.stamp_ns, i)
         if len(front_end.ids) < options.refill:
-            front_end.detect(image, processor._target_outline(target.T_world_camera if target else None))
+            front_end.detect(image, processor.target_outline(target.T_world_camera if target else None))
         tracks = front_end.tracks
         recorded.append(Recorded(entry.stamp_ns, tracks.ids, undistort(tracks.pixels, calibration), target))
     processor.close()

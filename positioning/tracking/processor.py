@@ -134,8 +134,8 @@ class TrackingProcessor:
         self.tracker.close()
 
     # ------------------------------------------------------------------ target
-    def _observe_target(self, image: np.ndarray, stamp_ns: int, seq: int
-                        ) -> tuple[TargetObservation | None, tuple[int, ...], tuple]:
+    def observe_target(self, image: np.ndarray, stamp_ns: int, seq: int
+                       ) -> tuple[TargetObservation | None, tuple[int, ...], tuple]:
         """The target, searched where the motion model puts it in this frame (the last
         pose alone left a spinning camera's target outside its predicted regions); over the
         full frame when there is no pose, when lost, or every ``target_search_every``
@@ -161,7 +161,9 @@ class TrackingProcessor:
                                  observed.corners_px, pose.points_world, own, systematic), observed.seen, \
             observed.outlines
 
-    def _target_outline(self, pose: Transform | None) -> np.ndarray | None:
+    def target_outline(self, pose: Transform | None) -> np.ndarray | None:
+        """The target's outline in the image from ``pose`` (pixels), where no fresh corner is
+        taken; None without a pose or with the target behind the camera."""
         if pose is None:
             return None
         xn, z = project_normalised(pose.inverse(), self._target_corners)
@@ -176,7 +178,7 @@ class TrackingProcessor:
             return FrameResult(None, "bad_image", problem)
         guesses = self.tracker.predict_pixels(stamp_ns, self.front_end.ids, self.front_end.pixels)
         tracks = self.front_end.track(image, guesses)
-        observation, seen, outlines = self._observe_target(image, stamp_ns, seq)
+        observation, seen, outlines = self.observe_target(image, stamp_ns, seq)
         out = self.tracker.step(stamp_ns, tracks, observation)
         self.front_end.drop(out.drop_ids)
         result, frame = out.result, out.frame
@@ -235,7 +237,7 @@ class TrackingProcessor:
         """Fresh corners for ``frame``; on a ``keyframe`` (made by ``Tracker.step``) its
         descriptors, and on a loaded map its points found again."""
         pose = result.estimate.T_world_camera if result.estimate is not None else self._last_target_pose
-        new = self.front_end.detect(image, self._target_outline(pose))
+        new = self.front_end.detect(image, self.target_outline(pose))
         frame = self.tracker.add_tracks(frame, new)
         if keyframe and self.tracker.map.last_keyframe is not None:
             if self.tracker.map.fixed and result.estimate is not None and self.options.tracker.refind:
