@@ -43,9 +43,6 @@ import numpy as np
 
 from bench.common import without_gtsam
 
-CHI2_3_997 = 14.16  # 99.7 % of a 3-D Gaussian's squared Mahalanobis distances lie below it
-CHI2_3_5SIGMA = 25.0  # "beyond 5 sigma" as bench family counts it
-
 
 @dataclass(frozen=True)
 class SmootherOptions:
@@ -300,8 +297,11 @@ def tracker_positions(sequence: Path, frames: int | None) -> list[np.ndarray | N
 
 
 def measure(sequence: Path, frames: int | None, options: SmootherOptions, with_tracker: bool) -> str:
-    """One table row: the smoother over its keyframes, today's tracker on the same frames."""
-    from positioning.trajectory_io import read_tum
+    """One table row: the smoother over its keyframes, today's tracker on the same frames
+    (both scored by ``evaluation.score_run``)."""
+    from positioning.evaluation import score_run
+    from positioning.geometry import Transform
+    from positioning.trajectory_io import StampedPose, read_tum
 
     calibration, recorded = record(sequence, frames, options)
     stamps = np.array([r.stamp_ns for r in recorded if r is not None])
@@ -312,24 +312,28 @@ def measure(sequence: Path, frames: int | None, options: SmootherOptions, with_t
         if estimate is not None:
             out.append((i, *estimate))
     seconds = time.perf_counter() - started
-    truth = read_tum(sequence / "groundtruth.tum")
-    error = np.array([t - truth[i].T_world_camera.translation for i, _, t, _ in out])
-    nees = np.array([e @ np.linalg.solve(c[:3, :3], e) for e, (_, _, _, c) in zip(error, out, strict=True)])
-    distance = np.linalg.norm(error, axis=1)
+    truth_all = read_tum(sequence / "groundtruth.tum")
+    truth = [truth_all[i] for i, *_ in out]
+    ours = [(StampedPose(t.stamp_ns, Transform(rotation, position)), covariance)
+            for t, (_, rotation, position, covariance) in zip(truth, out, strict=True)]
 
-    def rms(v: np.ndarray) -> str:
-        return f"{1000 * np.sqrt(np.mean(v**2)):.1f}" if len(v) else "-"
+    def rms(entries: list) -> str:
+        kept = [(t, e) for t, e in zip(truth, entries, strict=True) if e is not None]
+        if not kept:
+            return "-"
+        return f"{1000 * score_run([t for t, _ in kept], [e for _, e in kept]).rmse_m:.1f}"
 
-    row = [sequence.name, str(len(out)), rms(distance), f"{1000 * distance.max():.0f}",
-           f"{100 * np.mean(nees <= CHI2_3_997):.1f}", str(int(np.sum(nees > CHI2_3_5SIGMA))),
-           f"{1000 * seconds / max(len(out), 1):.0f}"]
+    score = score_run(truth, ours)
+    row = [sequence.name, str(len(out)), rms(ours), f"{1000 * score.max_m:.0f}", f"{100 * score.consistent:.1f}",
+           str(score.beyond_5_sigma), f"{1000 * seconds / max(len(out), 1):.0f}"]
     if with_tracker:
         positions = tracker_positions(sequence, frames)
-        theirs = [positions[i] for i, *_ in out]
-        posed = np.array([p is not None for p in theirs])
-        tracker_error = np.array([np.linalg.norm(p - truth[i].T_world_camera.translation)
-                                  for (i, *_), p in zip(out, theirs, strict=True) if p is not None])
-        row += [f"{100 * posed.mean():.1f}", rms(tracker_error), rms(distance[posed]), rms(distance[~posed])]
+        theirs = [None if positions[i] is None else (StampedPose(t.stamp_ns, Transform(np.eye(3), positions[i])), None)
+                  for t, (i, *_) in zip(truth, out, strict=True)]
+        posed = [entry is not None for entry in theirs]
+        row += [f"{100 * score_run(truth, theirs).coverage:.1f}", rms(theirs),
+                rms([o if p else None for o, p in zip(ours, posed, strict=True)]),
+                rms([None if p else o for o, p in zip(ours, posed, strict=True)])]
     return "| " + " | ".join(row) + " |"
 
 
