@@ -16,10 +16,10 @@ import os
 from pathlib import Path
 
 import numpy as np
+from cubeloc.daemon.replay import track_in_process
 
 from bench.common import machine_line, markdown_table, renders_root
 from bench.intrinsics import SCENARIOS, SEED
-from daemon.replay import track_in_process
 
 TITLE = "The tracker on a board"
 LENSES = ("paper_half", "vga")
@@ -28,17 +28,17 @@ CENTRE = np.array([0.0, 0.0, 0.36])  # the board's centre: where the cube stands
 
 def board_for(scenario: str):
     """The standing board of ``scenario``: facing its camera's first position."""
-    from fakes.planar_views import standing_board
-    from fakes.trajectories import make_trajectory
-    from positioning.target import make_board
+    from cubeloc.fakes.planar_views import standing_board
+    from cubeloc.fakes.trajectories import make_trajectory
+    from cubeloc.positioning.target import make_board
 
     start = make_trajectory(scenario, SCENARIOS[scenario])[0].T_world_camera.translation
     return standing_board(make_board(), CENTRE, start - CENTRE)
 
 
 def _run(root: Path, lens: str, scenario: str):
-    from fakes.lenses import lens_calibration
-    from fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.lenses import lens_calibration
+    from cubeloc.fakes.sequence import write_synthetic_sequence
 
     calibration, board = lens_calibration(lens), board_for(scenario)
     out = root / f"board-{lens}-{scenario}"

@@ -48,7 +48,7 @@ def starts(seed: int = 20, count: int = STARTS, seconds: float = SEGMENT_S, alon
     """The lap times the starts are drawn at, and per start the camera poses of its segment
     (``seconds`` at FPS): driving straight on at 0.2 m/s turning steadily, or with
     ``along_lap`` back onto the lap's own route within 2 s and on along it."""
-    from fakes.trajectories import camera_from_yaw_pitch, trajectory_at
+    from cubeloc.fakes.trajectories import camera_from_yaw_pitch, trajectory_at
 
     rng = np.random.default_rng(seed)
     out = []
@@ -89,7 +89,7 @@ def _map(work: Path) -> Path:
     if not path.is_file():
         # the bench's own CUBELOC_BENCH_* variables are not config keys for the child
         env = {k: v for k, v in os.environ.items() if not k.startswith("CUBELOC_BENCH_")}
-        subprocess.run([sys.executable, "-m", "daemon.cli", "track", "--target", str(sequence / "target.yaml"),
+        subprocess.run([sys.executable, "-m", "cubeloc.daemon.cli", "track", "--target", str(sequence / "target.yaml"),
                         "--calib", str(sequence / "camera.yaml"), "--sequence", str(sequence),
                         "--out", str(work / "long_lap.tum"), "--save-map", str(path), "--no-plot"],
                        cwd=REPO, env=env, check=True, capture_output=True)
@@ -97,11 +97,11 @@ def _map(work: Path) -> Path:
 
 
 def run_start(map_path: Path, poses: list, room, seed: int) -> dict:
-    from calib.camera_info import paper_camera
-    from fakes import render_view
-    from positioning.target import make_cube
-    from positioning.tracking.map_file import load_map
-    from positioning.tracking.processor import TrackingProcessor
+    from cubeloc.calib.camera_info import paper_camera
+    from cubeloc.fakes import render_view
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.tracking.map_file import load_map
+    from cubeloc.positioning.tracking.processor import TrackingProcessor
 
     camera, cube = paper_camera(), make_cube()
     processor = TrackingProcessor(cube, camera)
@@ -128,7 +128,7 @@ def run_start(map_path: Path, poses: list, room, seed: int) -> dict:
 
 
 def _rooms():
-    from fakes.room import Box, Room
+    from cubeloc.fakes.room import Box, Room
 
     boxes = (Box((2.0, 2.5, 0.5), (0.8, 0.6, 1.0), 1), Box((-2.5, 2.0, 0.4), (0.6, 0.6, 0.8), 2),
              Box((-2.0, -2.5, 0.6), (1.0, 0.5, 1.2), 3), Box((2.5, -2.0, 0.3), (0.5, 0.8, 0.6), 4))
@@ -149,8 +149,8 @@ def _row(name: str, results: list[dict]) -> list[str]:
 
 
 def run() -> str:
-    from positioning.evaluation import absolute_trajectory_error
-    from positioning.trajectory_io import read_tum
+    from cubeloc.positioning.evaluation import absolute_trajectory_error
+    from cubeloc.positioning.trajectory_io import read_tum
 
     keep = os.environ.get("CUBELOC_BENCH_BOOT")
     with tempfile.TemporaryDirectory(prefix="cubeloc-bench-boot-") as tmp:

@@ -49,7 +49,7 @@ class PacedFrames:
     """A camera (the drivers.base protocol) that loops over frames at ``rate_hz``."""
 
     def __init__(self, images: list[np.ndarray], rate_hz: float) -> None:
-        from drivers.base import CaptureStats, DeviceInfo
+        from cubeloc.drivers.base import CaptureStats, DeviceInfo
 
         self._images, self._period_s = images, 1.0 / rate_hz
         self.info = DeviceInfo("bench", "cubeloc", "paced frames", "0", "synthetic")
@@ -64,7 +64,7 @@ class PacedFrames:
         self._next = time.monotonic()
 
     def next_frame(self, timeout_s: float):
-        from drivers.base import Frame, FrameTimeout
+        from cubeloc.drivers.base import Frame, FrameTimeout
 
         wait = self._next - time.monotonic()
         if wait > timeout_s:
@@ -89,8 +89,8 @@ class PacedFrames:
 
 
 def render_frames() -> list[np.ndarray]:
-    from fakes import render_view
-    from fakes.trajectories import make_trajectory
+    from cubeloc.fakes import render_view
+    from cubeloc.fakes.trajectories import make_trajectory
 
     trajectory = make_trajectory("orbit", seconds=FRAMES / 10.0, fps=10.0)
     return [render_view(p.T_world_camera, seed=i, noise_sigma=2.0) for i, p in enumerate(trajectory)]
@@ -100,12 +100,12 @@ def start_daemon(images: list[np.ndarray], rate_hz: float, workdir: Path, **sect
     """The real daemon in this process on ``images`` played at ``rate_hz``, Zenoh on a
     loopback port, ``sections`` added to its config. Returns (daemon, stop, thread,
     camera, Zenoh endpoint)."""
-    from calib.camera_info import paper_camera, write_camera_info
-    from daemon.config import Config
-    from daemon.logs import configure_logging
-    from daemon.preflight import prepare
-    from daemon.service import Daemon
-    from positioning.target import default_cube_yaml
+    from cubeloc.calib.camera_info import paper_camera, write_camera_info
+    from cubeloc.daemon.config import Config
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.daemon.preflight import prepare
+    from cubeloc.daemon.service import Daemon
+    from cubeloc.positioning.target import default_cube_yaml
 
     configure_logging("warning", "console", stream=sys.stderr)
     write_camera_info(workdir / "camera.yaml", paper_camera())

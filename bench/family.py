@@ -58,8 +58,9 @@ def cached_case(root: Path, seed: int, resolution: str) -> Path:
     """The rendered sequence of family member ``seed``, rendered now if not cached or stale."""
     import shutil
 
+    from cubeloc.fakes.family import make_case, render_case
+
     from cubeloc.atomic import atomic_write_text
-    from fakes.family import make_case, render_case
 
     case = make_case(seed, resolution)
     out = root / resolution / f"seed-{seed}"
@@ -77,9 +78,9 @@ def cached_case(root: Path, seed: int, resolution: str) -> Path:
 def seed_figures(sequence: Path, per_frame: list, first: int = 0) -> dict:
     """The per-seed figures of one run (see the module's docstring); a run replayed from
     frame ``first`` is scored on the frames from there."""
-    from fakes.family import make_case
-    from positioning.evaluation import lost_where_seen_before, score_run
-    from positioning.trajectory_io import read_tum
+    from cubeloc.fakes.family import make_case
+    from cubeloc.positioning.evaluation import lost_where_seen_before, score_run
+    from cubeloc.positioning.trajectory_io import read_tum
 
     truth = read_tum(sequence / "groundtruth.tum")[first:]
     per_frame = per_frame[first:]
@@ -107,7 +108,7 @@ def run_tree(tree: Path, sequence: Path, work: Path, label: str, first: int = 0)
     """One ``cubeloc track`` of ``sequence`` from ``tree``, replayed from frame ``first``:
     its figures; a run that died is scored as no pose at all, with ``crashed`` its last
     words."""
-    from drivers.sequence import read_sequence_index
+    from cubeloc.drivers.sequence import read_sequence_index
 
     out = work / f"{sequence.name}-{label}-from-{first}.tum"
     extra = ("--no-plot",) + (("--first", str(first)) if first else ())  # (a baseline tree may lack --first)
@@ -245,16 +246,16 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
     """Print, frame by frame, what the tracker did on a rendered family member: status and
     detail, position error and claimed standard deviation (mm), keyframes, map points,
     live tracks and how many of them have a map point, and the textured share of the view."""
-    from calib.camera_info import read_camera_info
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.target import make_cube
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-    from positioning.trajectory_io import read_tum
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.positioning.trajectory_io import read_tum
 
     calibration = read_camera_info(sequence / "camera.yaml")
     truth = read_tum(sequence / "groundtruth.tum")
     described = json.loads((sequence / "family.json").read_text())
-    from fakes.family import make_case
+    from cubeloc.fakes.family import make_case
 
     textured = make_case(described["seed"], described["resolution"]).textured
     processor = TrackingProcessor(make_cube(), calibration, ProcessorOptions.in_frame_loop())
@@ -284,11 +285,11 @@ def target_recall(sequences: list[Path], every: int = 15) -> None:
     then 2 when empty; with a pass at 2 blurred (the library's ``quadSigma`` 0.8); with a
     pass at 1; with a pass at 1 and then at 1 blurred. Every ``every``-th frame where the
     truth puts the cube's centre in the image (40 px from its edges) within 3.5 m."""
-    from calib.camera_info import read_camera_info
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.detection import TagDetector
-    from positioning.target import make_cube
-    from positioning.trajectory_io import read_tum
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.detection import TagDetector
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.trajectory_io import read_tum
 
     ids = set(make_cube().ids)
     detector = TagDetector()

@@ -49,10 +49,9 @@ def run() -> str:
     import logging
 
     import structlog
-
-    from drivers.aravis_camera import AravisCamera
-    from drivers.base import CameraSettings
-    from drivers.fake_gige import GvFake
+    from cubeloc.drivers.aravis_camera import AravisCamera
+    from cubeloc.drivers.base import CameraSettings
+    from cubeloc.drivers.fake_gige import GvFake
 
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
     fake = GvFake("BENCH1").start()

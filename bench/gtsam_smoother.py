@@ -74,12 +74,12 @@ class Recorded:
 
 def record(sequence: Path, frames: int | None, options: SmootherOptions) -> tuple[object, list[Recorded | None]]:
     """The calibration and every frame's tracks and target pose (None for an unreadable frame)."""
-    from calib.camera_info import read_camera_info
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.camera_model import undistort
-    from positioning.observer import image_problem
-    from positioning.target import make_cube
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.camera_model import undistort
+    from cubeloc.positioning.observer import image_problem
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
     calibration = read_camera_info(sequence / "camera.yaml")
     processor = TrackingProcessor(make_cube(), calibration, ProcessorOptions.in_frame_loop())
@@ -279,10 +279,10 @@ class Smoother:
 
 def tracker_positions(sequence: Path, frames: int | None) -> list[np.ndarray | None]:
     """Today's tracker on the same frames (bundle adjustment in the frame loop): each frame's position."""
-    from calib.camera_info import read_camera_info
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.target import make_cube
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
     processor = TrackingProcessor(make_cube(), read_camera_info(sequence / "camera.yaml"),
                                   ProcessorOptions.in_frame_loop())
@@ -299,9 +299,9 @@ def tracker_positions(sequence: Path, frames: int | None) -> list[np.ndarray | N
 def measure(sequence: Path, frames: int | None, options: SmootherOptions, with_tracker: bool) -> str:
     """One table row: the smoother over its keyframes, today's tracker on the same frames
     (both scored by ``evaluation.score_run``)."""
-    from positioning.evaluation import score_run
-    from positioning.geometry import Transform
-    from positioning.trajectory_io import StampedPose, read_tum
+    from cubeloc.positioning.evaluation import score_run
+    from cubeloc.positioning.geometry import Transform
+    from cubeloc.positioning.trajectory_io import StampedPose, read_tum
 
     calibration, recorded = record(sequence, frames, options)
     stamps = np.array([r.stamp_ns for r in recorded if r is not None])
@@ -351,7 +351,7 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if without_gtsam("bench.gtsam_smoother"):
         return 2
-    from daemon.logs import configure_logging
+    from cubeloc.daemon.logs import configure_logging
 
     configure_logging("warning", "console", stream=sys.stderr)  # the tracker's debug lines are not the bench's
     options = SmootherOptions(px=args.px, hz=args.hz)

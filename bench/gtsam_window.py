@@ -26,11 +26,11 @@ from bench.common import without_gtsam
 
 def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
     """(problem, options, fx) of the bundle adjustments the tracker ran on ``sequence``."""
-    from calib.camera_info import read_camera_info
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.target import make_cube
-    from positioning.tracking import bundle
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.tracking import bundle
+    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
     kept, original = [], bundle.solve
 
@@ -69,9 +69,8 @@ def robust_cost(problem, fx: float, poses_cw, points: np.ndarray, huber: float, 
 def solve_with_gtsam(problem, options, fx: float, iterations: int):
     """The window solved by GTSAM: (camera-from-world poses, points, seconds optimising, seconds in all)."""
     import gtsam
+    from cubeloc.positioning.geometry import Transform
     from gtsam.symbol_shorthand import C, L, X
-
-    from positioning.geometry import Transform
 
     built = time.perf_counter()
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -109,7 +108,7 @@ def solve_with_gtsam(problem, options, fx: float, iterations: int):
 
 
 def compare(kept: list, iterations: int) -> str:
-    from positioning.tracking import bundle
+    from cubeloc.positioning.tracking import bundle
 
     rows = []
     for problem, options, fx in kept:  # one after the other, on the same machine state

@@ -20,9 +20,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from cubeloc.daemon.replay import track_in_process
+from cubeloc.fakes.lenses import LENSES, OTHER_LENSES, lens_calibration
+
 from bench.common import machine_line, markdown_table, renders_root
-from daemon.replay import track_in_process
-from fakes.lenses import LENSES, OTHER_LENSES, lens_calibration
 
 TITLE = "The tracker behind other lenses"
 # scenario: seconds rendered (the half-resolution tests' lengths)
@@ -31,7 +32,7 @@ SEED = 11
 
 
 def _run(root: Path, lens: str, scenario: str):
-    from fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.sequence import write_synthetic_sequence
 
     calibration = lens_calibration(lens)
     out = root / f"{lens}-{scenario}"

@@ -29,7 +29,7 @@ LAP_SECONDS = (3.0, 66.0, 129.0, 192.0)  # the laps' bounds in the 200 s scenari
 
 
 def _render(root: Path, seed: int) -> Path:
-    from fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.sequence import write_synthetic_sequence
 
     out = root / f"seed-{seed}"
     if not (out / "groundtruth.tum").exists():
@@ -38,11 +38,11 @@ def _render(root: Path, seed: int) -> Path:
 
 
 def _replay(sequence: Path, loop_closure: bool) -> dict:
-    from calib.camera_info import read_camera_info
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.target import make_cube
-    from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-    from positioning.trajectory_io import read_tum
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.positioning.trajectory_io import read_tum
 
     calibration = read_camera_info(sequence / "camera.yaml")
     truth = read_tum(sequence / "groundtruth.tum")
@@ -76,7 +76,7 @@ def _replay(sequence: Path, loop_closure: bool) -> dict:
 
 
 def run() -> str:
-    from daemon.logs import configure_logging
+    from cubeloc.daemon.logs import configure_logging
 
     configure_logging("warning", "console", stream=sys.stderr)  # the tracker's debug lines are not the bench's
     seeds = [int(s) for s in os.environ.get("CUBELOC_BENCH_LAPS_SEEDS", "0,1,2,3").split(",") if s]

@@ -31,9 +31,8 @@ MOUNTS = ((0.0, 0.0, 1.0, 0.0, -20.0), (0.2, 0.0, 0.6, 0.0, -10.0), (-0.3, 0.1, 
 
 def mount_transform(x, y, z, yaw_deg, pitch_deg):
     """T_base_camera: a camera looking along the base's x turned by yaw, pitched (negative: down)."""
+    from cubeloc.positioning.geometry import Transform
     from scipy.spatial.transform import Rotation
-
-    from positioning.geometry import Transform
 
     optical = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True)  # z ahead, x right, y down
     rotation = Rotation.from_euler("ZY", [yaw_deg, -pitch_deg], degrees=True) * optical
@@ -45,7 +44,7 @@ def placed_path(mount, room):
     the origin) ahead of it, 1.6-2.5 m away and seen across a vertical edge (two faces,
     as initialisation needs), the base and the camera keeping 0.6 m from the cube and
     inside the room: (planar poses maker, first distance)."""
-    from fakes.odometry import camera_on_base, figure_eight
+    from cubeloc.fakes.odometry import camera_on_base, figure_eight
 
     times = np.arange(0.0, SECONDS, 0.1)
     for distance in (1.6, 2.0, 2.5):
@@ -77,16 +76,16 @@ def placed_path(mount, room):
 
 
 def run() -> str:
+    from cubeloc.daemon.cli import main as cubeloc
+    from cubeloc.fakes.lenses import lens_calibration
+    from cubeloc.fakes.odometry import camera_on_base, wheel_odometry, write_odometry
+    from cubeloc.fakes.room import default_room
+    from cubeloc.fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.trajectories import EPOCH_NS
+    from cubeloc.positioning.trajectory_io import StampedPose
     from scipy.spatial.transform import Rotation
 
     from bench.scenarios import _track
-    from daemon.cli import main as cubeloc
-    from fakes.lenses import lens_calibration
-    from fakes.odometry import camera_on_base, wheel_odometry, write_odometry
-    from fakes.room import default_room
-    from fakes.sequence import write_synthetic_sequence
-    from fakes.trajectories import EPOCH_NS
-    from positioning.trajectory_io import StampedPose
 
     room = default_room()
     rows = []
@@ -142,7 +141,7 @@ def _label(placement) -> str:
 
 
 def _read_mount(path: Path):
-    from daemon.config import FramesConfig, tomllib
+    from cubeloc.daemon.config import FramesConfig, tomllib
 
     return FramesConfig(**tomllib.loads(path.read_text())["frames"]).base_from_camera.transform()
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from cubeloc.fakes.odometry import LEVER_M, mount_of
 
 from bench.common import REPO, markdown_table, renders_root
 from bench.scenarios import _render, _score, _track
-from fakes.odometry import LEVER_M, mount_of
 
 TITLE = "Wheel odometry in: vision alone and vision + wheel odometry on the same frames"
 SCENARIOS = ("spin_in_place", "blank_wall", "spin_on_axis", "passers_by")
@@ -37,9 +37,9 @@ def _config(path: Path, xyz, quaternion, as_prior: bool) -> None:
 
 
 def run() -> str:
-    from fakes.odometry import simulate_odometry, write_odometry
-    from fakes.trajectories import DEFAULT_SECONDS, make_trajectory
-    from positioning.geometry import Transform
+    from cubeloc.fakes.odometry import simulate_odometry, write_odometry
+    from cubeloc.fakes.trajectories import DEFAULT_SECONDS, make_trajectory
+    from cubeloc.positioning.geometry import Transform
 
     rows = []
     with renders_root("odometry", "CUBELOC_BENCH_SCENARIOS") as (root, tmp):
@@ -89,12 +89,12 @@ def _jumps(root: Path, tmp: Path, name: str) -> list[str]:
     """One row of the map -> odom table (JUMPS_TEXT)."""
     import json
 
-    from fakes.odometry import simulate_odometry, write_odometry
-    from fakes.trajectories import DEFAULT_SECONDS, make_trajectory
-    from positioning.frames import RobotFrames, SpreadCorrection
-    from positioning.geometry import Transform
-    from positioning.tracking.odometry import OdometryBuffer
-    from positioning.trajectory_io import read_tum
+    from cubeloc.fakes.odometry import simulate_odometry, write_odometry
+    from cubeloc.fakes.trajectories import DEFAULT_SECONDS, make_trajectory
+    from cubeloc.positioning.frames import RobotFrames, SpreadCorrection
+    from cubeloc.positioning.geometry import Transform
+    from cubeloc.positioning.tracking.odometry import OdometryBuffer
+    from cubeloc.positioning.trajectory_io import read_tum
 
     sequence = _render(root, name)
     seconds = DEFAULT_SECONDS[name]

@@ -45,7 +45,7 @@ EUROC_D = (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0)
 
 
 def _board(name: str):
-    from positioning.target import make_aprilgrid, make_board
+    from cubeloc.positioning.target import make_aprilgrid, make_board
 
     if name == "3x4":
         return make_board(rows=3, cols=4, tag_size_m=0.0955, gap_m=0.024)
@@ -55,8 +55,8 @@ def _board(name: str):
 
 
 def _camera(name: str):
-    from calib.camera_info import paper_camera
-    from fakes.lenses import lens_calibration
+    from cubeloc.calib.camera_info import paper_camera
+    from cubeloc.fakes.lenses import lens_calibration
 
     return paper_camera() if name == "paper" else lens_calibration(name)
 
@@ -70,10 +70,10 @@ def _case(args) -> list[tuple[float | None, float | None]]:
     import structlog
 
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
-    from fakes.planar_views import miscalibrated, rendered_board_view
-    from positioning.detection import TagDetector
-    from positioning.evaluation import decoded_corners_pose
-    from positioning.single_frame import TargetPoseProcessor
+    from cubeloc.fakes.planar_views import miscalibrated, rendered_board_view
+    from cubeloc.positioning.detection import TagDetector
+    from cubeloc.positioning.evaluation import decoded_corners_pose
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
 
     board, calibration = _board(board_name), _camera(camera_name)
     detector = TagDetector(board.family, border_bits=board.border_bits)
@@ -123,7 +123,7 @@ def renders(views: int, jobs: int) -> str:
 def _row_lines_rms(corners: dict[int, np.ndarray], cols: int, calibration) -> float:
     """RMS distance (px, undistorted) of each tag row's corners from their fitted line: the
     two edges of a row of tags (upper corners and lower corners) are two straight lines."""
-    from positioning.camera_model import undistort
+    from cubeloc.positioning.camera_model import undistort
 
     residuals = []
     rows = {tag_id // cols for tag_id in corners}
@@ -141,12 +141,11 @@ def _row_lines_rms(corners: dict[int, np.ndarray], cols: int, calibration) -> fl
 
 def real_frames() -> str:
     import cv2
-
-    from calib.camera_info import CameraCalibration
-    from drivers.sequence import read_image
-    from positioning.detection import TagDetector, refine_corners
-    from positioning.target import make_aprilgrid
-    from positioning.target_pose import plane_solutions, unique_target_detections
+    from cubeloc.calib.camera_info import CameraCalibration
+    from cubeloc.drivers.sequence import read_image
+    from cubeloc.positioning.detection import TagDetector, refine_corners
+    from cubeloc.positioning.target import make_aprilgrid
+    from cubeloc.positioning.target_pose import plane_solutions, unique_target_detections
 
     if not REAL.is_dir():
         return f"_{REAL} not found: no real frames measured._"
@@ -202,12 +201,11 @@ def fisheye_frames() -> str:
     saddle corners; OpenCV's aruco corners, refined by CORNER_REFINE_SUBPIX), the rows'
     straightness under it, and the fit against TUM-VI's published calibration."""
     import cv2
-
-    from calib.boards import parse_board
-    from calib.camera_info import CameraCalibration
-    from calib.detect import detect_board
-    from calib.solve import SolveOptions, View, solve
-    from drivers.sequence import read_image
+    from cubeloc.calib.boards import parse_board
+    from cubeloc.calib.camera_info import CameraCalibration
+    from cubeloc.calib.detect import detect_board
+    from cubeloc.calib.solve import SolveOptions, View, solve
+    from cubeloc.drivers.sequence import read_image
 
     if not REAL.is_dir():
         return f"_{REAL} not found: no fisheye frames measured._"

@@ -26,7 +26,7 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "apriltag-real"
 
 
 def _views(distance_m: float, count: int, seed: int):
-    from positioning.range_map import camera_on_sphere
+    from cubeloc.positioning.range_map import camera_on_sphere
 
     rng = np.random.default_rng(seed)
     return [camera_on_sphere(45 + rng.uniform(-12, 12), 33 + rng.uniform(-6, 6), distance_m) for _ in range(count)]
@@ -91,10 +91,11 @@ def _full_frame(processor):
 def _baseline():
     """The range map's corners-only baseline (bench/range.py) as ``baseline(frame)``:
     AprilTag 3 at decimate 2 on the full frame, EPnP + LM on the library's corners."""
+    from cubeloc.calib.camera_info import paper_camera
+    from cubeloc.positioning.detection import DetectorOptions, TagDetector
+    from cubeloc.positioning.target import make_cube
+
     from bench.range import baseline_pose
-    from calib.camera_info import paper_camera
-    from positioning.detection import DetectorOptions, TagDetector
-    from positioning.target import make_cube
 
     cube, camera = make_cube(), paper_camera()
     detector = TagDetector(cube.family, DetectorOptions())  # decimate 2, the paper's
@@ -116,10 +117,10 @@ def speed_table() -> str:
     ``SPEED_ROUNDS`` alternating rounds and the medians over them; the ratio to the
     baseline from full frames and baseline frames timed in pairs (``paired_ratios``): the
     median over every pair, and the range of the rounds' medians."""
-    from calib.camera_info import paper_camera
-    from fakes import render_view
-    from positioning.single_frame import TargetPoseProcessor
-    from positioning.target import make_cube
+    from cubeloc.calib.camera_info import paper_camera
+    from cubeloc.fakes import render_view
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
+    from cubeloc.positioning.target import make_cube
 
     cube, camera = make_cube(), paper_camera()
     rows = []
@@ -152,11 +153,11 @@ def speed_table() -> str:
 def accuracy_report() -> str:
     """Before/after accuracy on the synthetic camera (issue 9's table): median camera
     position error by distance, two faces against three, static RMSE and bias."""
-    from calib.camera_info import paper_camera
-    from fakes import render_view
-    from positioning.geometry import look_at
-    from positioning.single_frame import TargetPoseProcessor
-    from positioning.target import make_cube
+    from cubeloc.calib.camera_info import paper_camera
+    from cubeloc.fakes import render_view
+    from cubeloc.positioning.geometry import look_at
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
+    from cubeloc.positioning.target import make_cube
 
     cube, camera = make_cube(), paper_camera()
     modes = {"corners only (before)": False, "edge alignment (after)": True}
@@ -209,7 +210,7 @@ def accuracy_report() -> str:
 # The binding comparison ---------------------------------------------------------------
 
 def _library_corners_to_ours(corners) -> np.ndarray:
-    from positioning.detection import LIBRARY_PIXEL_OFFSET, LIBRARY_TO_UPRIGHT
+    from cubeloc.positioning.detection import LIBRARY_PIXEL_OFFSET, LIBRARY_TO_UPRIGHT
 
     return np.asarray(corners, dtype=np.float64).reshape(4, 2)[LIBRARY_TO_UPRIGHT] - LIBRARY_PIXEL_OFFSET
 
@@ -218,7 +219,7 @@ def _candidates(reference_settings: bool = False) -> dict:
     """name -> detect(image) -> [(id, corners in our order and OpenCV pixels)], for those
     installed. ``reference_settings``: the settings of the real photos' reference corners
     (no decimation, no edge refinement) instead of the paper's (decimate 2, refine)."""
-    from positioning.detection import DetectorOptions, TagDetector
+    from cubeloc.positioning.detection import DetectorOptions, TagDetector
 
     decimate, refine = (1.0, 0) if reference_settings else (2.0, 1)
     found = {}
@@ -255,7 +256,7 @@ def _candidates(reference_settings: bool = False) -> dict:
 def _real_photo_matches(detect) -> str:
     import re
 
-    from positioning.detection import LIBRARY_TO_UPRIGHT
+    from cubeloc.positioning.detection import LIBRARY_TO_UPRIGHT
 
     if not REAL.is_dir():
         return "n/a"
@@ -273,11 +274,11 @@ def _real_photo_matches(detect) -> str:
 
 
 def binding_table(views_per_distance: int = 6) -> str:
-    from calib.camera_info import paper_camera
-    from fakes import render_view
-    from positioning.detection import TagDetection
-    from positioning.target import make_cube
-    from positioning.target_pose import estimate_target_pose
+    from cubeloc.calib.camera_info import paper_camera
+    from cubeloc.fakes import render_view
+    from cubeloc.positioning.detection import TagDetection
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.target_pose import estimate_target_pose
 
     cube, camera = make_cube(), paper_camera()
     scenes = {d: [(t, render_view(t, seed=k)) for k, t in enumerate(_views(d, views_per_distance, seed=7))]

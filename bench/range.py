@@ -48,10 +48,10 @@ _EVALUATE = r"""
 import json, sys
 import cv2, numpy as np
 cv2.setNumThreads(1)
-from calib.camera_info import read_camera_info
-from positioning.geometry import Transform
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import make_cube
+from cubeloc.calib.camera_info import read_camera_info
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import make_cube
 index = json.load(open(sys.argv[1]))
 processors = {}
 for view in index:
@@ -75,7 +75,7 @@ for view in index:
 def other_lens():
     """A second camera, unlike the paper's: other focal length, off-centre principal
     point, stronger barrel distortion with tangential terms."""
-    from calib.camera_info import CameraCalibration
+    from cubeloc.calib.camera_info import CameraCalibration
 
     k = np.array([[1400.0, 0.0, 655.3], [0.0, 1398.0, 497.8], [0.0, 0.0, 1.0]])
     d = np.array([-0.22, 0.09, 0.0008, -0.0006, -0.015])
@@ -83,7 +83,7 @@ def other_lens():
 
 
 def views() -> list[dict]:
-    from positioning.geometry import look_at
+    from cubeloc.positioning.geometry import look_at
 
     rng = np.random.default_rng(16)
     out = []
@@ -105,10 +105,9 @@ def views() -> list[dict]:
 def render_all(root: Path) -> list[dict]:
     """Render every view once into ``root`` (PNG), with an index; existing frames are kept."""
     import cv2
-
-    from calib.camera_info import paper_camera, write_camera_info
-    from fakes import Room, render_view
-    from positioning.geometry import Transform
+    from cubeloc.calib.camera_info import paper_camera, write_camera_info
+    from cubeloc.fakes import Room, render_view
+    from cubeloc.positioning.geometry import Transform
 
     root.mkdir(parents=True, exist_ok=True)
     lenses = {"paper": paper_camera(), "other": other_lens()}
@@ -134,8 +133,7 @@ def baseline_pose(image: np.ndarray, calibration, detector, target) -> tuple[np.
     """Plain AprilTag 3 (the detector's decimation, its own corners) + EPnP + LM on all the
     target's corners found: (camera position or None, planes, tag ids)."""
     import cv2
-
-    from positioning.target_pose import count_planes, unique_target_detections
+    from cubeloc.positioning.target_pose import count_planes, unique_target_detections
 
     ours = unique_target_detections(detector.detect(image), target)
     ids = tuple(d.tag_id for d in ours)
@@ -156,11 +154,10 @@ def baseline_pose(image: np.ndarray, calibration, detector, target) -> tuple[np.
 def _library_side(index: list[dict]) -> list[dict]:
     """The baseline's pose and the library's tags at decimate 1, 2 and 3, per view."""
     import cv2
-
-    from calib.camera_info import read_camera_info
-    from positioning.detection import DetectorOptions, TagDetector
-    from positioning.target import make_cube
-    from positioning.target_pose import unique_target_detections
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.positioning.detection import DetectorOptions, TagDetector
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.target_pose import unique_target_detections
 
     cube = make_cube()
     detector = TagDetector(cube.family, DetectorOptions())  # decimate 2, the paper's

@@ -54,12 +54,12 @@ _WRAPPER = (
     "            print('PEAK_RSS_KB', line.split()[1], file=sys.stderr)\n"
     "atexit.register(_peak)\n"
     "sys.argv = ['cubeloc', *sys.argv[1:]]\n"
-    "runpy.run_module('daemon.cli', run_name='__main__')\n"
+    "runpy.run_module('cubeloc.daemon.cli', run_name='__main__')\n"
 )
 
 
 def _render(root: Path, name: str, seed: int = 1) -> Path:
-    from fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.sequence import write_synthetic_sequence
 
     out = root / (name if seed == 1 else f"{name}-seed{seed}")
     if not (out / "groundtruth.tum").is_file():
@@ -88,9 +88,9 @@ def _track(tree: Path, sequence: Path, out: Path, poses: bool, extra: tuple[str,
 def read_poses(sequence: Path, poses_jsonl: Path) -> list:
     """Per frame of ``sequence``: (StampedPose, 6x6 covariance or None) from ``cubeloc track
     --poses``, or None for a frame without a pose."""
-    from drivers.sequence import read_sequence_index
-    from positioning.geometry import Transform
-    from positioning.trajectory_io import StampedPose
+    from cubeloc.drivers.sequence import read_sequence_index
+    from cubeloc.positioning.geometry import Transform
+    from cubeloc.positioning.trajectory_io import StampedPose
 
     by_stamp = {}
     for line in poses_jsonl.read_text().splitlines():
@@ -102,9 +102,9 @@ def read_poses(sequence: Path, poses_jsonl: Path) -> list:
 
 
 def _score(sequence: Path, out: Path, poses: bool):
-    from drivers.sequence import read_sequence_index
-    from positioning.evaluation import score_run
-    from positioning.trajectory_io import read_tum
+    from cubeloc.drivers.sequence import read_sequence_index
+    from cubeloc.positioning.evaluation import score_run
+    from cubeloc.positioning.trajectory_io import read_tum
 
     truth = read_tum(sequence / "groundtruth.tum")
     if poses:

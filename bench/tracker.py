@@ -51,7 +51,7 @@ def _render(root: Path, name: str, seconds: float, seed: int, fps: float = 10.0,
     """The sequence ``name`` (trajectory ``name`` unless given) under ``root``; reused when
     ``root`` already holds it (see ``CUBELOC_BENCH_SEQUENCES``), so that a rerun skips
     minutes of rendering."""
-    from fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.sequence import write_synthetic_sequence
 
     out = root / name
     if not (out / "groundtruth.tum").is_file():
@@ -64,12 +64,12 @@ def _replay(sequence: Path, background: bool, frames: int | None = None, problem
     or for ``frames`` frames played forwards and backwards (a continuous motion) with the
     stamps running on. ``problems``, when given, receives the bundle adjustment problem of
     every new keyframe (for the solver comparison)."""
-    from calib.camera_info import read_camera_info
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.target import load_target
-    from positioning.tracking import bundle
-    from positioning.tracking.processor import TrackingProcessor
-    from positioning.trajectory_io import read_tum
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.target import load_target
+    from cubeloc.positioning.tracking import bundle
+    from cubeloc.positioning.tracking.processor import TrackingProcessor
+    from cubeloc.positioning.trajectory_io import read_tum
 
     options = _options(background=background)
     processor = TrackingProcessor(load_target(sequence / "target.yaml"), read_camera_info(sequence / "camera.yaml"),
@@ -102,8 +102,8 @@ def _solver_comparison(problems: list, fx: float, repeats: int = 3) -> dict:
     """Our Schur-complement solver against SciPy's least_squares on the same windows (every
     third keyframe's): median time per window (each the median of ``repeats`` solves) and
     the final reprojection error of both, in this process, one after the other."""
-    from positioning.tracking import bundle
-    from positioning.tracking.options import BundleOptions
+    from cubeloc.positioning.tracking import bundle
+    from cubeloc.positioning.tracking.options import BundleOptions
 
     seconds: dict[str, list[float]] = {"schur": [], "scipy": []}
     rms: dict[str, list[float]] = {"schur": [], "scipy": []}
@@ -151,14 +151,14 @@ def _live(sequence: Path, options=None) -> dict:
     rate) into the daemon's newest-frame slot, and the tracker takes the newest one when it
     is ready; frames it is too slow for are skipped, as live. Bundle adjustment in its
     thread. The images are decoded beforehand: PNG decoding is not the camera's work."""
-    from calib.camera_info import read_camera_info
-    from daemon.frame_queue import CapturedFrame, LatestFrameSlot
-    from drivers.base import Frame
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.evaluation import absolute_trajectory_error
-    from positioning.target import load_target
-    from positioning.tracking.processor import TrackingProcessor
-    from positioning.trajectory_io import StampedPose, read_tum
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
+    from cubeloc.drivers.base import Frame
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.evaluation import absolute_trajectory_error
+    from cubeloc.positioning.target import load_target
+    from cubeloc.positioning.tracking.processor import TrackingProcessor
+    from cubeloc.positioning.trajectory_io import StampedPose, read_tum
 
     entries = read_sequence_index(sequence)
     images = [read_image(e.path) for e in entries]
@@ -248,8 +248,8 @@ def _live_section(paper: Path, paper_30: Path, live_runs: int) -> str:
 def _options(**bundle_changes):
     """The daemon's options with the default configuration, these bundle adjustment
     options changed."""
-    from daemon.config import Config
-    from daemon.preflight import processor_options
+    from cubeloc.daemon.config import Config
+    from cubeloc.daemon.preflight import processor_options
 
     return processor_options(Config(), **bundle_changes)
 
@@ -269,7 +269,7 @@ def _peak_rss_mb() -> float:
 
 
 def _estimates(results, truth):
-    from positioning.trajectory_io import StampedPose
+    from cubeloc.positioning.trajectory_io import StampedPose
 
     return [StampedPose(p.stamp_ns, r.estimate.T_world_camera)
             for r, p in zip(results, truth, strict=False) if r.estimate is not None]
@@ -284,7 +284,11 @@ def _states(results) -> str:
 
 
 def run() -> str:
-    from positioning.evaluation import absolute_trajectory_error, relative_pose_error, scale_drift
+    from cubeloc.positioning.evaluation import (
+        absolute_trajectory_error,
+        relative_pose_error,
+        scale_drift,
+    )
 
     rows, notes = [], []
     keep = os.environ.get("CUBELOC_BENCH_SEQUENCES")
@@ -297,7 +301,7 @@ def run() -> str:
         ate = absolute_trajectory_error(truth, _estimates(results, truth))
         rpe = relative_pose_error(truth, _estimates(results, truth), delta_m=1.0)
         if keep:  # for a check with evo: evo_ape tum DIR/paper/groundtruth.tum DIR/paper.tum
-            from positioning.trajectory_io import write_tum
+            from cubeloc.positioning.trajectory_io import write_tum
 
             write_tum(root / "paper.tum", _estimates(results, truth))
         rows.append(["paper (30 s, cube first ~5 s)", f"{ate.rmse_m * 1000:.2f}", f"{ate.max_m * 1000:.2f}",

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from cubeloc.daemon.replay import track_in_process
+
 from bench.common import machine_line, markdown_table, renders_root
-from daemon.replay import track_in_process
 
 TITLE = "Brisk turns"
 SEED = 11
@@ -37,10 +38,10 @@ CASES = (
 
 
 def _run(root: Path, camera: str, rate: float, fps: float, exposure_s: float):
-    from fakes.lenses import lens_calibration
-    from fakes.scenarios import Effects
-    from fakes.sequence import write_synthetic_sequence
-    from fakes.trajectories import spin_trajectory
+    from cubeloc.fakes.lenses import lens_calibration
+    from cubeloc.fakes.scenarios import Effects
+    from cubeloc.fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.trajectories import spin_trajectory
 
     calibration = lens_calibration(camera)
     out = root / f"spin-{camera}-{rate:g}-{fps:g}-{exposure_s * 1000:g}ms"
@@ -51,7 +52,7 @@ def _run(root: Path, camera: str, rate: float, fps: float, exposure_s: float):
 
 
 def run() -> str:
-    from fakes.lenses import LENSES
+    from cubeloc.fakes.lenses import LENSES
 
     rows = []
     with renders_root("turns") as (root, _):

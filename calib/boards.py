@@ -142,7 +142,7 @@ class BoardSpec:
 
     def aprilgrid_target(self):
         """The AprilGrid as a ``positioning.target.Target`` (its tags, in Kalibr's frame)."""
-        from positioning.target import make_aprilgrid
+        from cubeloc.positioning.target import make_aprilgrid
 
         return make_aprilgrid(self.rows, self.cols, self.size_m, self.spacing, APRILGRID_FAMILY)
 
@@ -310,7 +310,7 @@ def _kalibr_board(doc: dict, path: Path) -> BoardSpec:
     AprilGrid targets) or a ``checkerboard`` (Kalibr counts its inner corners too)."""
     kind = doc.get("target_type")
     if kind == "aprilgrid":
-        from positioning.target import parse_target
+        from cubeloc.positioning.target import parse_target
 
         grid = parse_target(doc, str(path)).grid
         return make_board("aprilgrid", grid.cols, grid.rows, grid.tag_size_m, spacing=grid.spacing, spec=str(path))
@@ -402,7 +402,7 @@ def _coverage(coord: np.ndarray, edges: np.ndarray, px_per_m: float) -> np.ndarr
 def _aprilgrid_texture(board: BoardSpec, x: np.ndarray, y: np.ndarray, px_per_m: float) -> np.ndarray:
     """An AprilGrid with area-exact edge texels: each tag's cells (two-cell border) where its
     corners put them, a black square of one gap at every corner of every tag."""
-    from positioning.tag_bits import tag_cells
+    from cubeloc.positioning.tag_bits import tag_cells
 
     points = board.object_points().astype(np.float64).reshape(-1, 4, 3)[:, :, :2]
     s, gap = board.size_m, board.spacing * board.size_m

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import structlog
 import yaml
+from cubeloc.calib.boards import BoardSpec
+from cubeloc.calib.detect import Detection
 
-from calib.boards import BoardSpec
-from calib.detect import Detection
 from cubeloc.atomic import atomic_write_text
 
 CACHE_NAME = "corners.yaml"

@@ -16,9 +16,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.boards import BoardSpec
-from calib.detect import Detection
+from cubeloc.calib.boards import BoardSpec
+from cubeloc.calib.detect import Detection
 
 SCORES = ("X", "Y", "size", "skew")
 TARGET_SPREAD = (0.7, 0.7, 0.4, 0.5)  # ROS camera_calibration's param_ranges

@@ -11,8 +11,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.boards import APRILGRID_FAMILY, BoardSpec
+from cubeloc.calib.boards import APRILGRID_FAMILY, BoardSpec
 
 MIN_BOARD_POINTS = 8  # a partial view (ChArUco, AprilGrid: two tags) with fewer does not constrain its pose well
 MAX_EDGE_WIDTH_PX = 5.0  # a 10-90 % edge wider than this is a blurred view
@@ -74,7 +73,7 @@ def _detect_charuco(image: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, np
 
 @functools.lru_cache(maxsize=1)
 def _aprilgrid_detector():
-    from positioning.detection import TagDetector
+    from cubeloc.positioning.detection import TagDetector
 
     return TagDetector(APRILGRID_FAMILY, border_bits=2)
 
@@ -84,7 +83,7 @@ def _detect_aprilgrid(image: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, 
     # borders), each corner moved to the saddle point where the tag meets its gap square
     # (positioning.detection): 0.25 px RMS on the real EuRoC frame where the decoder's
     # own corners give 2.5. Tags whose saddles cannot be found are left out.
-    from positioning.detection import refine_corners
+    from cubeloc.positioning.detection import refine_corners
 
     detector = _aprilgrid_detector()
     found = detector.detect(image)
@@ -388,7 +387,7 @@ def _diagnose_charuco(images: list[np.ndarray], board: BoardSpec) -> str:
 
 
 def _diagnose_aprilgrid(images: list[np.ndarray], board: BoardSpec) -> str:
-    from positioning.detection import TagDetector
+    from cubeloc.positioning.detection import TagDetector
 
     for image in images[:4]:
         found = _aprilgrid_detector().detect(image)

@@ -14,8 +14,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.solve import Solution, parameter_names
+from cubeloc.calib.solve import Solution, parameter_names
 
 # thresholds of the verdict; "good" must pass all of them
 GOOD_RMS_PX, POOR_RMS_PX = 0.5, 1.0

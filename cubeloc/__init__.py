@@ -1,8 +1,11 @@
-"""cubeloc: shared core (version, error hierarchy, safe file writes).
+"""cubeloc: the one installed package, and its shared core (version, error hierarchy, safe
+file writes).
 
-The functional packages are top-level: ``drivers`` (cameras), ``fakes`` (synthetic camera),
-``calib`` (camera calibration), ``positioning`` (target, detection, pose, tracker) and
-``daemon`` (configuration, CLI, the capture -> positioning -> Zenoh loop).
+Its subpackages live in folders of their own at the top of the repository (pyproject.toml
+maps each): ``cubeloc.drivers`` (cameras, drivers/), ``cubeloc.fakes`` (synthetic camera,
+fakes/), ``cubeloc.calib`` (camera calibration, calib/), ``cubeloc.positioning`` (target,
+detection, pose, tracker, positioning/) and ``cubeloc.daemon`` (configuration, CLI, the
+capture -> positioning -> Zenoh loop, daemon/).
 """
 
 from importlib.metadata import PackageNotFoundError, version

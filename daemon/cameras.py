@@ -6,8 +6,8 @@ Everything in daemon/ (and the tests) makes cameras through this module.
 
 from __future__ import annotations
 
-from drivers.registry import make_camera, parse_source, register_backend
+from cubeloc.drivers.registry import make_camera, parse_source, register_backend
 
-register_backend("synthetic", "fakes.camera:open_synthetic_source")
+register_backend("synthetic", "cubeloc.fakes.camera:open_synthetic_source")
 
 __all__ = ["make_camera", "parse_source"]

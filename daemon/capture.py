@@ -27,12 +27,10 @@ from collections.abc import Callable
 
 import numpy as np
 import structlog
-
-from cubeloc.errors import CubelocError
-from daemon.cameras import make_camera
-from daemon.frame_queue import CapturedFrame, LatestFrameSlot
-from daemon.messages import CameraStatus
-from drivers.base import (
+from cubeloc.daemon.cameras import make_camera
+from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from cubeloc.daemon.messages import CameraStatus
+from cubeloc.drivers.base import (
     Camera,
     CameraError,
     CameraSettings,
@@ -40,6 +38,8 @@ from drivers.base import (
     Frame,
     FrameTimeout,
 )
+
+from cubeloc.errors import CubelocError
 
 log = structlog.get_logger()
 

@@ -21,20 +21,20 @@ from cubeloc.errors import CubelocError
 
 # The verbs, in the order ``--help`` lists them.
 VERB_MODULES = (
-    "daemon.commands.run",
-    "daemon.commands.devices",
-    "daemon.commands.record",
-    "daemon.commands.demo",
-    "daemon.commands.echo",
-    "daemon.commands.simulate",
-    "daemon.commands.pose",
-    "daemon.commands.track",
-    "daemon.commands.generate",
-    "daemon.commands.calibrate",
-    "daemon.commands.calibrate_target",
-    "daemon.commands.calibrate_mount",
-    "daemon.commands.doctor",
-    "daemon.commands.map",
+    "cubeloc.daemon.commands.run",
+    "cubeloc.daemon.commands.devices",
+    "cubeloc.daemon.commands.record",
+    "cubeloc.daemon.commands.demo",
+    "cubeloc.daemon.commands.echo",
+    "cubeloc.daemon.commands.simulate",
+    "cubeloc.daemon.commands.pose",
+    "cubeloc.daemon.commands.track",
+    "cubeloc.daemon.commands.generate",
+    "cubeloc.daemon.commands.calibrate",
+    "cubeloc.daemon.commands.calibrate_target",
+    "cubeloc.daemon.commands.calibrate_mount",
+    "cubeloc.daemon.commands.doctor",
+    "cubeloc.daemon.commands.map",
 )
 
 

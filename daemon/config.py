@@ -19,13 +19,13 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from cubeloc.drivers.base import CameraSettings
+from cubeloc.positioning.frames import RobotFrames
+from cubeloc.positioning.geometry import Transform
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from cubeloc.errors import ConfigError
-from drivers.base import CameraSettings
-from positioning.frames import RobotFrames
-from positioning.geometry import Transform
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -319,7 +319,7 @@ class OdometryConfig(Section):
         return _ros_name(value, "topic name")
 
     def buffer(self):
-        from positioning.tracking.odometry import OdometryBuffer, OdometryModel
+        from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryModel
 
         model = OdometryModel(self.scale_sigma, self.turn_sigma, math.radians(self.heading_drift_deg_s))
         return OdometryBuffer(model, stale_s=self.stale_s, max_extrapolation_s=self.max_extrapolation_s)

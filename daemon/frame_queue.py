@@ -11,7 +11,7 @@ import dataclasses
 import threading
 from dataclasses import dataclass
 
-from drivers.base import Frame
+from cubeloc.drivers.base import Frame
 
 
 @dataclass(frozen=True)

@@ -12,8 +12,7 @@ import threading
 import time
 
 import numpy as np
-
-from positioning.estimator import PoseSource
+from cubeloc.positioning.estimator import PoseSource
 
 FPS_WINDOW_S = 3.0
 LATENCY_WINDOW = 500

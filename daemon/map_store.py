@@ -18,12 +18,12 @@ import threading
 import time
 
 import structlog
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.daemon.config import MapConfig
+from cubeloc.positioning.target import Target
+from cubeloc.positioning.tracking.map import Map
 
-from calib.camera_info import CameraCalibration
 from cubeloc.errors import ConfigError, CubelocError
-from daemon.config import MapConfig
-from positioning.target import Target
-from positioning.tracking.map import Map
 
 log = structlog.get_logger()
 
@@ -47,7 +47,7 @@ class MapStore:
 
     def load(self, at_start: bool = False) -> Map | None:
         """The map in the file (None: no file yet, or not usable and ignored)."""
-        from positioning.tracking.map_file import load_map
+        from cubeloc.positioning.tracking.map_file import load_map
 
         if not self.path.exists():
             if at_start:
@@ -77,7 +77,7 @@ class MapStore:
     def save(self, world_map: Map, wait: bool, live_track_ids: set[int] = frozenset()) -> None:
         """Thinned to ``keyframes`` (points the live tracks follow are kept), copied, and
         written in a thread (``wait``: until it is on disk)."""
-        from positioning.tracking.map_file import map_arrays, write_map
+        from cubeloc.positioning.tracking.map_file import map_arrays, write_map
 
         if not self.config.save or len(world_map.keyframes) < MIN_KEYFRAMES_TO_SAVE:
             return

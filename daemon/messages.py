@@ -19,10 +19,9 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-
-from positioning.estimator import PoseEstimate
-from positioning.frames import RobotFrames
-from positioning.geometry import Transform
+from cubeloc.positioning.estimator import PoseEstimate
+from cubeloc.positioning.frames import RobotFrames
+from cubeloc.positioning.geometry import Transform
 
 POSE_SCHEMA = "cubeloc.pose/3"  # world -> camera: /1's fields, source and latency_ns
 BASE_POSE_SCHEMA = "cubeloc.pose/4"  # map -> base_link: /3's fields and camera_frame_id (/2 + the same two)

@@ -20,9 +20,8 @@ import json
 import time
 
 import structlog
-
-from daemon.ros2 import ODOMETRY_TYPE, dds_type_name, typestore
-from positioning.tracking.odometry import OdometryBuffer
+from cubeloc.daemon.ros2 import ODOMETRY_TYPE, dds_type_name, typestore
+from cubeloc.positioning.tracking.odometry import OdometryBuffer
 
 log = structlog.get_logger()
 ODOMETRY_SCHEMA = "cubeloc.odometry/1"

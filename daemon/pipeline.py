@@ -21,13 +21,12 @@ import time
 from collections.abc import Callable
 
 import structlog
-
-from daemon.capture import CaptureThread
-from daemon.frame_queue import CapturedFrame, LatestFrameSlot
-from daemon.loop_stats import LoopStats
-from daemon.messages import UnpublishablePose, pose_message
-from daemon.sdnotify import SystemdNotifier
-from positioning.estimator import FrameProcessor, FrameResult, PoseEstimate
+from cubeloc.daemon.capture import CaptureThread
+from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from cubeloc.daemon.loop_stats import LoopStats
+from cubeloc.daemon.messages import UnpublishablePose, pose_message
+from cubeloc.daemon.sdnotify import SystemdNotifier
+from cubeloc.positioning.estimator import FrameProcessor, FrameResult, PoseEstimate
 
 # Called with (seq, stamp_ns, estimate) for every pose published on ``pose``: the base's
 # pose in the map (``base_pose``), the ROS 2 messages. One that raises costs its own output.

@@ -13,20 +13,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import structlog
+from cubeloc.calib.camera_info import CameraCalibration, read_camera_info
+from cubeloc.daemon.cameras import make_camera, parse_source
+from cubeloc.daemon.config import Config
+from cubeloc.daemon.zenoh_session import build_zenoh_config
+from cubeloc.positioning.estimator import FrameProcessor
+from cubeloc.positioning.target import Target, combine_targets, load_target
 
-from calib.camera_info import CameraCalibration, read_camera_info
 from cubeloc.errors import ConfigError
-from daemon.cameras import make_camera, parse_source
-from daemon.config import Config
-from daemon.zenoh_session import build_zenoh_config
-from positioning.estimator import FrameProcessor
-from positioning.target import Target, combine_targets, load_target
 
 if TYPE_CHECKING:
-    from positioning.target_pose import PoseOptions
-    from positioning.tracking import ProcessorOptions
-    from positioning.tracking.map import Map
-    from positioning.tracking.odometry import OdometryBuffer, OdometryPrior
+    from cubeloc.positioning.target_pose import PoseOptions
+    from cubeloc.positioning.tracking import ProcessorOptions
+    from cubeloc.positioning.tracking.map import Map
+    from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryPrior
 
 log = structlog.get_logger()
 
@@ -47,7 +47,7 @@ def prepare(config: Config) -> Prepared:
     if config.map.file is not None:
         if config.positioning.mode != "tracker":
             raise ConfigError('[map] file is for the tracker: positioning.mode = "target" has no map')
-        from daemon.map_store import MapStore
+        from cubeloc.daemon.map_store import MapStore
 
         MapStore(config.map, prepared.calibration, prepared.target).check()
     build_zenoh_config(config.zenoh)
@@ -63,8 +63,8 @@ def prepare_on_loopback(workdir: Path, port: int, name: str, **sections: dict) -
     synthetic camera, the paper camera's calibration and the default cube (written into
     ``workdir``), Zenoh listening on 127.0.0.1:``port`` only with no scouting, and quick
     reconnects. ``sections``: config sections (a dict each) merged key by key over these."""
-    from calib.camera_info import paper_camera, write_camera_info
-    from positioning.target import default_cube_yaml
+    from cubeloc.calib.camera_info import paper_camera, write_camera_info
+    from cubeloc.positioning.target import default_cube_yaml
 
     write_camera_info(workdir / "camera.yaml", paper_camera())
     (workdir / "target.yaml").write_text(default_cube_yaml())
@@ -111,7 +111,7 @@ def combined_target(config: Config) -> Target:
 
 def pose_options(config: Config) -> PoseOptions:
     """The target pose's face and residual limits of ``[positioning]``."""
-    from positioning.target_pose import PoseOptions
+    from cubeloc.positioning.target_pose import PoseOptions
 
     positioning = config.positioning
     return PoseOptions(allow_two_faces=positioning.allow_two_faces, allow_one_face=positioning.allow_one_face,
@@ -126,7 +126,7 @@ def processor_options(config: Config, max_keyframes: int | None = None, **bundle
     all take their options from here."""
     from dataclasses import replace
 
-    from positioning.tracking import ProcessorOptions
+    from cubeloc.positioning.tracking import ProcessorOptions
 
     defaults = ProcessorOptions()
     floor = replace(defaults.tracker.bundle.floor, enabled=config.positioning.floor)
@@ -147,7 +147,7 @@ def make_processor(prepared: Prepared, odometry: OdometryBuffer | None = None,
     again at every reset). This is the one place a processor is put together."""
     config = prepared.config
     if config.positioning.mode == "tracker":
-        from positioning.tracking import TrackingProcessor
+        from cubeloc.positioning.tracking import TrackingProcessor
 
         # a map to keep: more keyframes than the tracker's own 40
         keyframes = config.map.keyframes if config.map.file is not None else None
@@ -156,7 +156,7 @@ def make_processor(prepared: Prepared, odometry: OdometryBuffer | None = None,
         if start_map is not None:
             processor.start_from_map(start_map)
         return processor
-    from positioning.single_frame import TargetPoseProcessor
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
 
     if odometry is not None:
         log.warning("odometry is only used by the tracker (positioning.mode = \"tracker\")")
@@ -167,7 +167,7 @@ def odometry_prior(config: Config, odometry: OdometryBuffer) -> OdometryPrior:
     """The wheels' samples as the tracker takes them: through the camera's mount on the
     base and the floor's up (``[frames]``), as its motion prior or only as the bridge
     while it has no pose (``[odometry] as_prior``)."""
-    from positioning.tracking.odometry import OdometryPrior
+    from cubeloc.positioning.tracking.odometry import OdometryPrior
 
     frames = config.frames.robot_frames()
     return OdometryPrior(odometry, frames.T_base_camera, frames.up_in_target, as_prior=config.odometry.as_prior)

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from calib.camera_info import CameraCalibration
-from drivers.sequence import read_image, read_sequence_index
-from positioning.estimator import FrameResult
-from positioning.evaluation import RunScore, score_estimates
-from positioning.target import Target, make_cube
-from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-from positioning.trajectory_io import read_tum
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.drivers.sequence import read_image, read_sequence_index
+from cubeloc.positioning.estimator import FrameResult
+from cubeloc.positioning.evaluation import RunScore, score_estimates
+from cubeloc.positioning.target import Target, make_cube
+from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+from cubeloc.positioning.trajectory_io import read_tum
 
 
 def track_results(sequence: Path, calibration: CameraCalibration, target: Target | None = None) -> list[FrameResult]:

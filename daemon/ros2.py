@@ -31,12 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import structlog
-
-from calib.camera_info import CameraCalibration
-from daemon.messages import StatusReport
-from positioning.estimator import PoseEstimate, PoseSource
-from positioning.frames import RobotFrames
-from positioning.geometry import Transform
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.daemon.messages import StatusReport
+from cubeloc.positioning.estimator import PoseEstimate, PoseSource
+from cubeloc.positioning.frames import RobotFrames
+from cubeloc.positioning.geometry import Transform
 
 log = structlog.get_logger()
 

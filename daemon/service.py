@@ -21,26 +21,31 @@ import time
 from collections.abc import Callable
 
 import structlog
+from cubeloc.daemon.cameras import make_camera
+from cubeloc.daemon.capture import CaptureThread
+from cubeloc.daemon.frame_queue import LatestFrameSlot
+from cubeloc.daemon.loop_stats import LoopStats
+from cubeloc.daemon.map_store import MapStore
+from cubeloc.daemon.messages import (
+    StatusReport,
+    base_pose_message,
+    map_odom_message,
+    status_message,
+)
+from cubeloc.daemon.odometry_in import OdometryInput
+from cubeloc.daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
+from cubeloc.daemon.preflight import Prepared, make_processor, read_positioning_files
+from cubeloc.daemon.publisher import ZenohPublisher
+from cubeloc.daemon.ros2 import Ros2Publisher
+from cubeloc.daemon.sdnotify import SystemdNotifier
+from cubeloc.daemon.viewer import LiveViewer
+from cubeloc.daemon.zenoh_session import ZenohUnreachable, open_session
+from cubeloc.drivers.base import Camera, CameraSettings
+from cubeloc.positioning.estimator import FrameProcessor
+from cubeloc.positioning.frames import SpreadCorrection
 
 from cubeloc import __version__
 from cubeloc.errors import CubelocError
-from daemon.cameras import make_camera
-from daemon.capture import CaptureThread
-from daemon.frame_queue import LatestFrameSlot
-from daemon.loop_stats import LoopStats
-from daemon.map_store import MapStore
-from daemon.messages import StatusReport, base_pose_message, map_odom_message, status_message
-from daemon.odometry_in import OdometryInput
-from daemon.pipeline import CAPTURE_STALL_MARGIN_S, ProcessingLoop
-from daemon.preflight import Prepared, make_processor, read_positioning_files
-from daemon.publisher import ZenohPublisher
-from daemon.ros2 import Ros2Publisher
-from daemon.sdnotify import SystemdNotifier
-from daemon.viewer import LiveViewer
-from daemon.zenoh_session import ZenohUnreachable, open_session
-from drivers.base import Camera, CameraSettings
-from positioning.estimator import FrameProcessor
-from positioning.frames import SpreadCorrection
 
 log = structlog.get_logger()
 
@@ -323,7 +328,10 @@ class Daemon:
         (in the loop's thread, at the swap) and the new processor started from that file,
         so a reload loses nothing of the map since the last save. None otherwise: another
         calibration or target starts from what the file has (or, refused, without it)."""
-        from positioning.tracking.map_file import calibration_fingerprint, target_fingerprint
+        from cubeloc.positioning.tracking.map_file import (
+            calibration_fingerprint,
+            target_fingerprint,
+        )
 
         if old_store is None or self.map_store is None or not self.config.map.save:
             return None

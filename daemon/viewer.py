@@ -40,19 +40,19 @@ import cv2
 import foxglove
 import numpy as np
 import structlog
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.daemon.config import FoxgloveConfig
+from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from cubeloc.daemon.messages import pose_label
+from cubeloc.positioning.estimator import FeatureState, FrameResult
+from cubeloc.positioning.frames import RobotFrames
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target
 from foxglove import channels as fc
 from foxglove import messages as fm
 from foxglove.mcap import MCAPWriteOptions
 
-from calib.camera_info import CameraCalibration
 from cubeloc.errors import ConfigError, InputFileError
-from daemon.config import FoxgloveConfig
-from daemon.frame_queue import CapturedFrame, LatestFrameSlot
-from daemon.messages import pose_label
-from positioning.estimator import FeatureState, FrameResult
-from positioning.frames import RobotFrames
-from positioning.geometry import Transform
-from positioning.target import Target
 
 log = structlog.get_logger()
 
@@ -308,7 +308,7 @@ class _Shown:
 def serve(context: foxglove.Context, listen: str, name: str) -> foxglove.WebSocketServer:
     """The Foxglove WebSocket server for ``context`` on ``listen`` (HOST:PORT); an address
     in use or not this machine's is a ConfigError (exit 2, one line)."""
-    from daemon.config import parse_listen
+    from cubeloc.daemon.config import parse_listen
 
     try:
         host, port = parse_listen(listen)

@@ -18,9 +18,9 @@ import re
 from typing import TYPE_CHECKING, Any
 
 import structlog
+from cubeloc.daemon.config import ZenohConfig
 
 from cubeloc.errors import ConfigError
-from daemon.config import ZenohConfig
 
 if TYPE_CHECKING:  # pragma: no cover
     import zenoh

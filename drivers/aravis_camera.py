@@ -36,10 +36,8 @@ import time
 
 import numpy as np
 import structlog
-
-from cubeloc.images import to_mono8
-from drivers.aravis_settings import apply_settings, read_settings
-from drivers.base import (
+from cubeloc.drivers.aravis_settings import apply_settings, read_settings
+from cubeloc.drivers.base import (
     PIXEL_BITS,
     CameraBase,
     CameraNotFound,
@@ -50,10 +48,12 @@ from drivers.base import (
     FrameTimeout,
     StreamBroken,
 )
-from drivers.clock import DeviceClockMapper
-from drivers.frame_accounting import FrameAccounting, Verdict
-from drivers.genicam import FeatureMap, probe_features
-from drivers.ownership import CameraLock
+from cubeloc.drivers.clock import DeviceClockMapper
+from cubeloc.drivers.frame_accounting import FrameAccounting, Verdict
+from cubeloc.drivers.genicam import FeatureMap, probe_features
+from cubeloc.drivers.ownership import CameraLock
+
+from cubeloc.images import to_mono8
 
 log = structlog.get_logger()
 

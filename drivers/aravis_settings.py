@@ -16,9 +16,8 @@ from __future__ import annotations
 import dataclasses
 
 import structlog
-
-from drivers.base import CameraError, CameraSettings, FeatureNotSupported
-from drivers.genicam import FeatureMap
+from cubeloc.drivers.base import CameraError, CameraSettings, FeatureNotSupported
+from cubeloc.drivers.genicam import FeatureMap
 
 log = structlog.get_logger()
 

@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import structlog
-
-from drivers.base import DeviceInfo
-from drivers.usb import list_usb_cameras
+from cubeloc.drivers.base import DeviceInfo
+from cubeloc.drivers.usb import list_usb_cameras
 
 log = structlog.get_logger()
 
@@ -43,7 +42,7 @@ def discover(include_fake: bool = False) -> Discovery:
     notes: list[str] = []
     aravis: list[DeviceInfo] = []
     try:
-        from drivers.aravis_camera import list_aravis_devices
+        from cubeloc.drivers.aravis_camera import list_aravis_devices
 
         aravis = list_aravis_devices(include_fake=include_fake)
     except (ImportError, ValueError) as exc:  # no PyGObject, or no Aravis typelib

@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
-from drivers.base import CaptureStats
+from cubeloc.drivers.base import CaptureStats
 
 GEV1_MAX_BLOCK_ID = 0xFFFF
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
-from drivers.base import FeatureNotSupported
+from cubeloc.drivers.base import FeatureNotSupported
 
 # What we need -> candidate feature names, preferred first.
 CANDIDATES: dict[str, tuple[str, ...]] = {

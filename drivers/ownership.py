@@ -23,8 +23,7 @@ import tempfile
 from pathlib import Path
 
 import structlog
-
-from drivers.base import CameraBusy
+from cubeloc.drivers.base import CameraBusy
 
 log = structlog.get_logger()
 
@@ -82,7 +81,7 @@ def _short(command: str) -> str:
     words = command.split()
     for index, word in enumerate(words):
         name = os.path.basename(word)
-        from_module = name == "-m" and words[index + 1:index + 2] == ["daemon.cli"]
+        from_module = name == "-m" and words[index + 1:index + 2] == ["cubeloc.daemon.cli"]
         if name == "cubeloc" or from_module:
             rest = words[index + 2:] if from_module else words[index + 1:]
             verb = next((w for w in rest if not w.startswith("-")), "")

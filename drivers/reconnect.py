@@ -12,8 +12,7 @@ import threading
 import time
 
 import structlog
-
-from drivers.base import Camera, CameraBusy, CameraError, FeatureNotSupported, StreamBroken
+from cubeloc.drivers.base import Camera, CameraBusy, CameraError, FeatureNotSupported, StreamBroken
 
 log = structlog.get_logger()
 

@@ -14,10 +14,9 @@ import time
 from dataclasses import dataclass
 
 import structlog
-
-from drivers.base import Camera, CaptureStats, EndOfStream, FrameTimeout, StreamBroken
-from drivers.reconnect import reopen_with_backoff
-from drivers.sequence import SequenceWriter
+from cubeloc.drivers.base import Camera, CaptureStats, EndOfStream, FrameTimeout, StreamBroken
+from cubeloc.drivers.reconnect import reopen_with_backoff
+from cubeloc.drivers.sequence import SequenceWriter
 
 log = structlog.get_logger()
 

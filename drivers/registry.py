@@ -20,12 +20,12 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-from drivers.base import Camera, CameraNotFound, CameraSettings
+from cubeloc.drivers.base import Camera, CameraNotFound, CameraSettings
 
 # backend name -> "module:factory"; a factory takes (argument, settings) -> Camera
 BACKENDS: dict[str, str] = {
-    "aravis": "drivers.aravis_camera:open_aravis_source",
-    "replay": "drivers.replay:open_replay_source",
+    "aravis": "cubeloc.drivers.aravis_camera:open_aravis_source",
+    "replay": "cubeloc.drivers.replay:open_replay_source",
 }
 
 

@@ -17,9 +17,7 @@ import time
 from pathlib import Path
 
 import structlog
-
-from cubeloc.errors import InputFileError
-from drivers.base import (
+from cubeloc.drivers.base import (
     CameraBase,
     CameraSettings,
     CaptureStats,
@@ -29,7 +27,9 @@ from drivers.base import (
     FrameTimeout,
     StreamBroken,
 )
-from drivers.sequence import SequenceEntry, read_image, read_sequence_index
+from cubeloc.drivers.sequence import SequenceEntry, read_image, read_sequence_index
+
+from cubeloc.errors import InputFileError
 
 log = structlog.get_logger()
 

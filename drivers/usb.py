@@ -21,8 +21,7 @@ import os
 from dataclasses import dataclass
 
 import structlog
-
-from drivers.base import DeviceInfo
+from cubeloc.drivers.base import DeviceInfo
 
 log = structlog.get_logger()
 

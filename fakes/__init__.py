@@ -5,11 +5,11 @@
 ``synthetic:TRAJECTORY``); ``write_synthetic_sequence`` writes them as EuRoC sequences.
 """
 
-from fakes.camera import RenderOptions, SyntheticCamera, open_synthetic_source
-from fakes.render import render_view
-from fakes.room import Box, Room, default_room
-from fakes.sequence import write_synthetic_sequence
-from fakes.trajectories import TRAJECTORIES, make_trajectory
+from cubeloc.fakes.camera import RenderOptions, SyntheticCamera, open_synthetic_source
+from cubeloc.fakes.render import render_view
+from cubeloc.fakes.room import Box, Room, default_room
+from cubeloc.fakes.sequence import write_synthetic_sequence
+from cubeloc.fakes.trajectories import TRAJECTORIES, make_trajectory
 
 __all__ = [
     "TRAJECTORIES",

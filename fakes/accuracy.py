@@ -16,12 +16,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from fakes.optics import project, undistort_pixels
-from fakes.scene import INK_BLACK, PAPER_WHITE, face_brightness, tag_bits
-from positioning.geometry import Transform
-from positioning.target import Target
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.fakes.optics import project, undistort_pixels
+from cubeloc.fakes.scene import INK_BLACK, PAPER_WHITE, face_brightness, tag_bits
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target
 
 MAX_VIEW_ANGLE_DEG = 70.0  # faces seen more obliquely are skipped (edges too compressed)
 

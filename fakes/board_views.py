@@ -25,10 +25,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
-from calib.boards import BoardSpec, board_texture
-from calib.camera_info import CameraCalibration
-from fakes.optics import project, ray_grid
+from cubeloc.calib.boards import BoardSpec, board_texture
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.fakes.optics import project, ray_grid
 
 WHITE, BLACK, BACKGROUND = 215.0, 35.0, 110.0  # grey levels of paper, ink and the room
 LENS_BLUR_PX = 0.5
@@ -260,7 +259,7 @@ def write_board_sequence(
     """A recorded sequence (EuRoC layout) of a technician waving the board: each view
     held for ``repeats`` frames, and an empty frame (board out of view) every
     ``blank_every`` views. Returns the number of frames written."""
-    from drivers.sequence import SequenceWriter
+    from cubeloc.drivers.sequence import SequenceWriter
 
     blank = np.full((camera.height, camera.width), int(BACKGROUND), np.uint8)
     stamp_ns = 1_700_000_000_000_000_000

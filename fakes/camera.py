@@ -40,9 +40,8 @@ from dataclasses import dataclass, field
 from urllib.parse import parse_qsl
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration, paper_camera, read_camera_info
-from drivers.base import (
+from cubeloc.calib.camera_info import CameraCalibration, paper_camera, read_camera_info
+from cubeloc.drivers.base import (
     CameraBase,
     CameraError,
     CameraNotFound,
@@ -55,13 +54,13 @@ from drivers.base import (
     FrameTimeout,
     StreamBroken,
 )
-from fakes.render import render_view
-from fakes.room import Room, default_room
-from fakes.scenarios import Effects, scenario_effects
-from fakes.trajectories import TrajectoryError, make_trajectory
-from positioning.geometry import Transform
-from positioning.target import Target, load_target, make_cube
-from positioning.trajectory_io import StampedPose, read_tum
+from cubeloc.fakes.render import render_view
+from cubeloc.fakes.room import Room, default_room
+from cubeloc.fakes.scenarios import Effects, scenario_effects
+from cubeloc.fakes.trajectories import TrajectoryError, make_trajectory
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target, load_target, make_cube
+from cubeloc.positioning.trajectory_io import StampedPose, read_tum
 
 NOMINAL_EXPOSURE_US = 5000.0  # the exposure at which a frame has the rendered brightness
 _ENDED = object()  # the render-ahead worker's end-of-trajectory marker

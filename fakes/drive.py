@@ -8,8 +8,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-
-from fakes.room import Room
+from cubeloc.fakes.room import Room
 
 DEG = np.pi / 180.0
 CUBE_HALF = 0.09  # the standard cube: 18 cm, centre at the origin, standing on z = -0.09

@@ -34,17 +34,16 @@ import json
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from fakes.camera import RenderOptions
-from fakes.drive import CUBE_HALF, DEG, FreeFloor, wander
-from fakes.room import WALL_AXES, Box, Room, plain_paint, plain_span
-from fakes.scenarios import Effects, walkers_across
-from fakes.surfaces import Quad, TextureShader
-from fakes.trajectories import EPOCH_NS, camera_from_yaw_pitch
-from positioning.geometry import Transform
-from positioning.target import make_cube
-from positioning.trajectory_io import StampedPose
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.fakes.camera import RenderOptions
+from cubeloc.fakes.drive import CUBE_HALF, DEG, FreeFloor, wander
+from cubeloc.fakes.room import WALL_AXES, Box, Room, plain_paint, plain_span
+from cubeloc.fakes.scenarios import Effects, walkers_across
+from cubeloc.fakes.surfaces import Quad, TextureShader
+from cubeloc.fakes.trajectories import EPOCH_NS, camera_from_yaw_pitch
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.trajectory_io import StampedPose
 
 RENDER_VERSION = 1  # bumped when the renderer or the textures change what a case's frames show
 RESOLUTIONS = {"full": (1280, 1024), "half": (640, 512)}
@@ -430,7 +429,7 @@ def make_case(seed: int, resolution: str = "half") -> FamilyCase:
 def render_case(case: FamilyCase, out_dir, progress=None):
     """Render ``case`` as a sequence directory (``fakes.sequence`` layout) with its
     ``family.json``; returns the ``SequenceSummary``."""
-    from fakes.sequence import write_synthetic_sequence
+    from cubeloc.fakes.sequence import write_synthetic_sequence
 
     return write_synthetic_sequence(
         out_dir, f"family-{case.seed}", poses=list(case.poses), effects=case.effects, seed=case.seed,

@@ -25,8 +25,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from drivers.base import (
+from cubeloc.drivers.base import (
     Camera,
     CameraBase,
     CameraNotFound,
@@ -37,7 +36,7 @@ from drivers.base import (
     FrameTimeout,
     StreamBroken,
 )
-from positioning.geometry import Transform
+from cubeloc.positioning.geometry import Transform
 
 FAULT_KINDS = (
     "timeout",  # no frame for `seconds`: every call in that time waits its timeout, FrameTimeout
@@ -268,8 +267,8 @@ def render_orbit_frames(count: int, *, arc_deg: float = 6.0, radius_m: float = 1
                         seed: int = 0, room: bool = True) -> tuple[list[np.ndarray], list[Transform]]:
     """``count`` frames of the default cube along a short arc (the camera looking at the
     cube's centre): the images and their true ``T_world_camera``."""
-    from fakes.render import render_view
-    from positioning.geometry import look_at
+    from cubeloc.fakes.render import render_view
+    from cubeloc.positioning.geometry import look_at
 
     start = np.deg2rad(-40.0)
     images, poses = [], []

@@ -20,9 +20,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+from cubeloc.positioning.geometry import Transform
 from scipy.spatial.transform import Rotation
-
-from positioning.geometry import Transform
 
 ODOMETRY_SCHEMA = "cubeloc.odometry/1"
 LEVER_M = 0.2  # the camera ahead of the base's axis, unless a scenario puts it elsewhere
@@ -58,7 +57,7 @@ def simulate_odometry(trajectory: str, seconds: float, T_base_camera: Transform,
                       phase_s: float = 0.007, **errors) -> list[dict]:
     """The wheels' odometry along the named camera trajectory, the base under the camera as
     ``T_base_camera`` says (``wheel_odometry`` has the errors)."""
-    from fakes.trajectories import make_trajectory, trajectory_at
+    from cubeloc.fakes.trajectories import make_trajectory, trajectory_at
 
     make_trajectory(trajectory, seconds, rate_hz)  # checks the name and the timing
     count = int(np.floor((seconds - phase_s) * rate_hz + 1e-9))
@@ -75,7 +74,7 @@ def wheel_odometry(times: np.ndarray, planar: list[tuple[float, float, float]], 
     (seconds from the epoch), as wheels measure them; ``slip`` = (time s, metres): the
     wheels turn that much further than the base moves in the 0.2 s from that time (a
     wheel spinning on a slippery patch)."""
-    from fakes.trajectories import EPOCH_NS
+    from cubeloc.fakes.trajectories import EPOCH_NS
 
     rate_hz = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 50.0
     rng = np.random.default_rng(seed)

@@ -21,8 +21,7 @@ import functools
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration
+from cubeloc.calib.camera_info import CameraCalibration
 
 # A fisheye's rays must stay this far inside 90 deg off-axis: (x, y, 1) grows without bound.
 MAX_RAY_ANGLE_DEG = 89.0

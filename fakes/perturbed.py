@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from positioning.target import Tag, Target
+from cubeloc.positioning.target import Tag, Target
 
 
 def perturbed_target(target: Target, seed: int, max_shift_m: float = 0.003, max_rotation_deg: float = 2.0,

@@ -8,13 +8,12 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from fakes.optics import project
-from fakes.render import render_view
-from fakes.room import Room
-from positioning.geometry import Transform, look_at
-from positioning.target import Tag, Target
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.fakes.optics import project
+from cubeloc.fakes.render import render_view
+from cubeloc.fakes.room import Room
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.target import Tag, Target
 
 BORDER_PX = 10.0  # every corner of the board at least this far inside the image
 ROOM = Room(x_range=(-7.0, 7.0), y_range=(-7.0, 7.0), z_range=(-0.09, 5.0))  # the board at z = 0 faces up

@@ -24,14 +24,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration, paper_camera
-from fakes.optics import ray_grid
-from fakes.room import Room, box_quads, default_room, room_atlas
-from fakes.scene import target_quads
-from fakes.surfaces import Quad, QuadInCamera
-from positioning.geometry import Transform
-from positioning.target import Target, make_cube
+from cubeloc.calib.camera_info import CameraCalibration, paper_camera
+from cubeloc.fakes.optics import ray_grid
+from cubeloc.fakes.room import Room, box_quads, default_room, room_atlas
+from cubeloc.fakes.scene import target_quads
+from cubeloc.fakes.surfaces import Quad, QuadInCamera
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target, make_cube
 
 SAMPLE_BUDGET = 1_500_000  # sub-pixel samples of edge pixels per object, when supersample is None
 MIN_SUPERSAMPLE, MAX_SUPERSAMPLE = 3, 5  # 5: the best edge accuracy measured (bench render)
@@ -158,7 +157,7 @@ def _remap_any_shape(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) ->
 def quad_pixel_box(quad: QuadInCamera, calibration: CameraCalibration) -> PixelBox | None:
     """Pixels the quad may cover (its outline clipped to the view, distorted, plus a
     margin), or None when no part of it is in view."""
-    from fakes.optics import project
+    from cubeloc.fakes.optics import project
 
     polygon = np.array([quad.origin, quad.origin + quad.axis_u * quad.quad.size_u,
                         quad.origin + quad.axis_u * quad.quad.size_u + quad.axis_v * quad.quad.size_v,

@@ -12,9 +12,8 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-
-from fakes.surfaces import Quad, TextureShader
-from fakes.textures import procedural_texture
+from cubeloc.fakes.surfaces import Quad, TextureShader
+from cubeloc.fakes.textures import procedural_texture
 
 ATLAS_PADDING = 4  # texels of replicated border around each wall, so bilinear never bleeds
 MAX_ATLAS_SIDE = 32000  # cv2.remap takes sources under SHRT_MAX on each side

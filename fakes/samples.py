@@ -1,4 +1,4 @@
-"""Write the sample frames shown in docs/synthetic.md: ``python -m fakes.samples [DIR]``.
+"""Write the sample frames shown in docs/synthetic.md: ``python -m cubeloc.fakes.samples [DIR]``.
 
 One frame per trajectory (default directory ``docs/samples``), downscaled to 640x512.
 """
@@ -9,9 +9,8 @@ import sys
 from pathlib import Path
 
 import cv2
-
-from fakes.render import render_view
-from fakes.trajectories import make_trajectory
+from cubeloc.fakes.render import render_view
+from cubeloc.fakes.trajectories import make_trajectory
 
 # (trajectory, second of the frame shown, what it shows)
 SAMPLES = (

@@ -42,12 +42,11 @@ import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
+from cubeloc.fakes.room import Box, box_quads, plain_paint
+from cubeloc.fakes.surfaces import Quad, TextureShader
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.trajectory_io import StampedPose
 from scipy.interpolate import CubicSpline
-
-from fakes.room import Box, box_quads, plain_paint
-from fakes.surfaces import Quad, TextureShader
-from positioning.geometry import Transform, look_at
-from positioning.trajectory_io import StampedPose
 
 DEG = np.pi / 180.0
 HEIGHT = 0.91  # camera 1 m above the floor (z = -0.09)

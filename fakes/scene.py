@@ -14,10 +14,9 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-
-from fakes.surfaces import PlainShader, Quad, TagShader
-from positioning.tag_bits import tag_cells
-from positioning.target import Tag, Target
+from cubeloc.fakes.surfaces import PlainShader, Quad, TagShader
+from cubeloc.positioning.tag_bits import tag_cells
+from cubeloc.positioning.target import Tag, Target
 
 # One light from above and to the side, so the faces of the cube differ in brightness
 # the way they do under a ceiling lamp; ``AMBIENT`` keeps the darkest face readable.

@@ -18,8 +18,7 @@ from typing import Protocol
 
 import cv2
 import numpy as np
-
-from positioning.geometry import Transform
+from cubeloc.positioning.geometry import Transform
 
 
 class Shader(Protocol):

@@ -28,10 +28,9 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.geometry import Transform
-from positioning.jit import compiled, read_only
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.jit import compiled, read_only
 
 # Iterations of the undistortion: 20 at most, stopping at 1e-10 (normalised units).
 # Measured over the whole 1280x1024 image, on the project's lens (k1 -0.08, k2 0.05) and

@@ -13,10 +13,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import project_pose, solver_pixels
-from positioning.geometry import Transform
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import project_pose, solver_pixels
+from cubeloc.positioning.geometry import Transform
 
 # Floor on the corner noise used for the covariance, so a perfect fit still has one.
 MIN_CORNER_SIGMA_PX = 0.02

@@ -34,13 +34,12 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import distort, undistort
-from positioning.jit import compiled, read_only
-from positioning.step_profiles import step_positions
-from positioning.tag_bits import ARUCO_DICTIONARIES
-from positioning.target import KNOWN_FAMILIES
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import distort, undistort
+from cubeloc.positioning.jit import compiled, read_only
+from cubeloc.positioning.step_profiles import step_positions
+from cubeloc.positioning.tag_bits import ARUCO_DICTIONARIES
+from cubeloc.positioning.target import KNOWN_FAMILIES
 
 # Library corner index for each of our TL, TR, BR, BL (see the module docstring).
 LIBRARY_TO_UPRIGHT = np.array([1, 0, 3, 2])

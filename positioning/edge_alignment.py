@@ -22,15 +22,14 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import project_pose, project_with_jacobian
-from positioning.corner_pose import MIN_CORNER_SIGMA_PX, TargetPose
-from positioning.geometry import Transform, robust_sigma, rotation_from_rvec
-from positioning.jit import compiled, read_only
-from positioning.step_profiles import step_positions
-from positioning.tag_bits import grid_to_world, tag_edges
-from positioning.target import Target
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import project_pose, project_with_jacobian
+from cubeloc.positioning.corner_pose import MIN_CORNER_SIGMA_PX, TargetPose
+from cubeloc.positioning.geometry import Transform, robust_sigma, rotation_from_rvec
+from cubeloc.positioning.jit import compiled, read_only
+from cubeloc.positioning.step_profiles import step_positions
+from cubeloc.positioning.tag_bits import grid_to_world, tag_edges
+from cubeloc.positioning.target import Target
 
 PROFILE_STEP_PX = 0.5
 MIN_PROFILE_SIGMA_PX = 0.01  # floor on the profile noise used for the covariance
@@ -283,7 +282,7 @@ def _offsets(position, good, clean, runs, scale, shift, normals, point_j, points
 
 
 def _warm_up() -> None:  # through measure_edges, on a tag's worth of synthetic edges
-    from calib.camera_info import CameraCalibration
+    from cubeloc.calib.camera_info import CameraCalibration
 
     rng = np.random.default_rng(0)
     count = MIN_PROFILES

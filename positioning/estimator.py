@@ -16,8 +16,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-
-from positioning.geometry import Transform
+from cubeloc.positioning.geometry import Transform
 
 
 class PoseState(str, enum.Enum):

@@ -15,9 +15,8 @@ import bisect
 from dataclasses import dataclass
 
 import numpy as np
-
-from positioning.geometry import Transform
-from positioning.trajectory_io import StampedPose
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.trajectory_io import StampedPose
 
 DEFAULT_MAX_DT_NS = 1_000_000  # 1 ms: both files come from the same frame stamps
 
@@ -243,7 +242,7 @@ def score_run(truth: list[StampedPose], poses: list[tuple[StampedPose, np.ndarra
     position block, against the chi-square bound for 3 dof (14.16 for 99.7 %) and 25 (a
     Mahalanobis distance of 5).
 
-    >>> from positioning.geometry import Transform
+    >>> from cubeloc.positioning.geometry import Transform
     >>> t = [StampedPose(i, Transform.identity()) for i in range(4)]
     >>> off = Transform(np.eye(3), np.array([0.003, 0.0, 0.0]))
     >>> s = score_run(t, [None, (StampedPose(1, off), np.eye(6) * 1e-6), (StampedPose(2, off), None), None])
@@ -294,7 +293,7 @@ def lost_where_seen_before(truth: list[StampedPose], posed: list[bool], radius_m
     relocalisation against the map could at best give back. A frame lost elsewhere needs
     the map to grow first.
 
-    >>> from positioning.geometry import Transform
+    >>> from cubeloc.positioning.geometry import Transform
     >>> at = lambda x, turned=False: StampedPose(0, Transform(np.diag([-1.0, 1.0, -1.0]) if turned else np.eye(3),
     ...                                                       np.array([x, 0.0, 0.0])))
     >>> truth = [at(0.0), at(5.0), at(0.2), at(9.0), at(0.1, turned=True)]
@@ -332,8 +331,8 @@ def corners_sqpnp_pose(points_world: np.ndarray, pixels: np.ndarray, calibration
 
     if len(points_world) < 4:
         return None
-    from positioning.camera_model import solver_pixels
-    from positioning.corner_pose import refine_lm
+    from cubeloc.positioning.camera_model import solver_pixels
+    from cubeloc.positioning.corner_pose import refine_lm
 
     solver = solver_pixels(pixels, calibration)
     ok, rvec, tvec = cv2.solvePnP(points_world, *solver, flags=cv2.SOLVEPNP_SQPNP)
@@ -349,7 +348,7 @@ def corners_sqpnp_pose(points_world: np.ndarray, pixels: np.ndarray, calibration
 def decoded_corners_pose(image: np.ndarray, target, calibration, detector) -> Transform | None:
     """The corners-only baseline on an image: ``target``'s tags decoded by ``detector``
     without decimation, then ``corners_sqpnp_pose`` on all their corners."""
-    from positioning.target_pose import unique_target_detections
+    from cubeloc.positioning.target_pose import unique_target_detections
 
     found = unique_target_detections(detector.detect(image, None, 1.0), target)
     if not found:

@@ -29,8 +29,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from positioning.geometry import Transform, skew
+from cubeloc.positioning.geometry import Transform, skew
 
 
 def reframe_covariance(covariance: np.ndarray, T_parent_child: Transform, T_child_new: Transform,

@@ -31,21 +31,20 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import structlog
-
-from calib.camera_info import CameraCalibration
-from positioning import jit
-from positioning.camera_model import ahead, project_pose
-from positioning.corner_pose import TargetPose, pose_covariance
-from positioning.detection import (
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning import jit
+from cubeloc.positioning.camera_model import ahead, project_pose
+from cubeloc.positioning.corner_pose import TargetPose, pose_covariance
+from cubeloc.positioning.detection import (
     DetectorOptions,
     TagDetection,
     TagDetector,
     refine_corners,
 )
-from positioning.edge_alignment import SHARP_CORNER_RMS_PX, refine_pose_on_edges
-from positioning.geometry import Transform
-from positioning.tag_scale import check_tag_scale
-from positioning.tag_search import (
+from cubeloc.positioning.edge_alignment import SHARP_CORNER_RMS_PX, refine_pose_on_edges
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tag_scale import check_tag_scale
+from cubeloc.positioning.tag_search import (
     COMPLETION_GROWTH,
     LARGE_TAG_DECIMATE,
     LARGE_TAG_PX,
@@ -59,8 +58,8 @@ from positioning.tag_search import (
     predicted_tag_regions,
     tags_in_view,
 )
-from positioning.target import Target
-from positioning.target_pose import (
+from cubeloc.positioning.target import Target
+from cubeloc.positioning.target_pose import (
     PoseOptions,
     PoseOutcome,
     Refusal,

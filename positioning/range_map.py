@@ -15,11 +15,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.geometry import Transform, look_at
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import Target
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import Target
 
 Render = Callable[[Transform, int], np.ndarray]
 

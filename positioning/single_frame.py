@@ -8,13 +8,13 @@ before.
 
 from __future__ import annotations
 
-from calib.camera_info import CameraCalibration
-from positioning.detection import DetectorOptions
-from positioning.estimator import FrameResult, FrameView, PoseEstimate, PoseState
-from positioning.geometry import Transform
-from positioning.observer import TargetObserver, image_problem
-from positioning.target import Target
-from positioning.target_pose import PoseOptions
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.detection import DetectorOptions
+from cubeloc.positioning.estimator import FrameResult, FrameView, PoseEstimate, PoseState
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.observer import TargetObserver, image_problem
+from cubeloc.positioning.target import Target
+from cubeloc.positioning.target_pose import PoseOptions
 
 
 class TargetPoseProcessor:

@@ -29,8 +29,7 @@ edge alignment's time; compiled, 1188 profiles of 15 samples take ~0.2 ms.
 from __future__ import annotations
 
 import numpy as np
-
-from positioning.jit import compiled, read_only
+from cubeloc.positioning.jit import compiled, read_only
 
 
 def _steps(image, starts, deltas, samples, groups, group_count, min_contrast, rising_only, with_spread):

@@ -8,12 +8,11 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import ahead, project, undistort
-from positioning.detection import cells_across, library_decimate
-from positioning.geometry import Transform
-from positioning.target import Target
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import ahead, project, undistort
+from cubeloc.positioning.detection import cells_across, library_decimate
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target
 
 # A predicted tag region grows by this fraction of the tag's size on each side, plus a
 # fixed margin: the camera moves between frames and the prediction is last frame's pose.

@@ -24,16 +24,20 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import project_pose
+from cubeloc.positioning.detection import TagDetection, TagDetector, refine_corners
+from cubeloc.positioning.geometry import robust_sigma
+from cubeloc.positioning.target import Tag, Target, validate_target
+from cubeloc.positioning.target_pose import (
+    PoseOptions,
+    estimate_target_pose,
+    unique_target_detections,
+)
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from calib.camera_info import CameraCalibration
 from cubeloc.errors import InputFileError
-from positioning.camera_model import project_pose
-from positioning.detection import TagDetection, TagDetector, refine_corners
-from positioning.geometry import robust_sigma
-from positioning.target import Tag, Target, validate_target
-from positioning.target_pose import PoseOptions, estimate_target_pose, unique_target_detections
 
 MIN_VIEWS = 5  # usable images (two tags or more) below which nothing is solved
 MIN_TAG_VIEWS = 2  # a tag needs this many usable views to be placed
@@ -208,8 +212,8 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
     measurement), jointly over the free tags' placements and the view poses, from the
     corners' solution. The corners fix where the tags are to ~0.05 mm; the edges, many
     more and measured without fitting lines, take that further."""
-    from positioning.edge_alignment import MIN_PROFILES, edge_model, measure_edges
-    from positioning.geometry import rotation_from_rvec
+    from cubeloc.positioning.edge_alignment import MIN_PROFILES, edge_model, measure_edges
+    from cubeloc.positioning.geometry import rotation_from_rvec
 
     nominal, first, free = problem.nominal, problem.first, problem.free
     solved = (first, *free)

@@ -20,19 +20,18 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import project_pose, solver_pixels
-from positioning.corner_pose import (
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import project_pose, solver_pixels
+from cubeloc.positioning.corner_pose import (
     TargetPose,
     corners_covariance,
     covariance_from_jacobian,
     make_pose,
     refine_lm,
 )
-from positioning.detection import TagDetection
-from positioning.geometry import Transform
-from positioning.target import Target
+from cubeloc.positioning.detection import TagDetection
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target
 
 # Tags whose normals are closer than this lie on one plane (a face) for counting planes.
 SAME_PLANE_DEG = 10.0

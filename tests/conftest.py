@@ -40,7 +40,7 @@ def pytest_terminal_summary(terminalreporter):
 def run_cli(*args: str, timeout: float = 120, **kwargs) -> subprocess.CompletedProcess:
     """Run ``cubeloc ARGS`` in a fresh interpreter, as a user would."""
     return subprocess.run(
-        [sys.executable, "-m", "daemon.cli", *args],
+        [sys.executable, "-m", "cubeloc.daemon.cli", *args],
         capture_output=True,
         text=True,
         timeout=timeout,

@@ -50,7 +50,7 @@ def wait_until(predicate: Callable[[], object], timeout_s: float = 30.0, poll_s:
 def half_resolution():
     """The paper's camera at 640x512 (fx 833 px): the tracker tests' camera, 4x cheaper to
     render and track than the full 1280x1024 the bench uses."""
-    from fakes.lenses import lens_calibration
+    from cubeloc.fakes.lenses import lens_calibration
 
     return lens_calibration("paper_half")
 

@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 import yaml
 from conftest import real_photographs
+from cubeloc.calib.camera_info import CameraCalibration, paper_camera, write_camera_info
+from cubeloc.drivers.sequence import read_image
+from cubeloc.fakes import render_view
+from cubeloc.fakes.planar_views import rendered_board_view
+from cubeloc.positioning.detection import TagDetector, refine_corners
+from cubeloc.positioning.evaluation import decoded_corners_pose
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import load_target, make_aprilgrid, parse_target
+from cubeloc.positioning.target_pose import plane_solutions, unique_target_detections
 
-from calib.camera_info import CameraCalibration, paper_camera, write_camera_info
 from cubeloc.errors import InputFileError
-from drivers.sequence import read_image
-from fakes import render_view
-from fakes.planar_views import rendered_board_view
-from positioning.detection import TagDetector, refine_corners
-from positioning.evaluation import decoded_corners_pose
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import load_target, make_aprilgrid, parse_target
-from positioning.target_pose import plane_solutions, unique_target_detections
 
 KALIBR_YAML = "target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\ntagSpacing: 0.3\n"
 # EuRoC MAV cam0, from the dataset's sensor.yaml: the camera of the real EuRoC frame
@@ -131,7 +131,7 @@ def test_a_grid_render_puts_its_squares_at_the_tags_corners():
     diagonally, is ink, and so is the saddle's opposite quadrant inside the border."""
     grid, camera = make_aprilgrid(rows=2, cols=2, tag_size_m=0.1), paper_camera()
     centre = grid.corners_of(grid.ids).mean(axis=0)
-    from positioning.geometry import look_at
+    from cubeloc.positioning.geometry import look_at
 
     image = render_view(look_at(centre + [0.0, 0.0, 0.6], centre, up=(0.0, 1.0, 0.0)), calibration=camera,
                         target=grid, room=False, noise_sigma=0.0)
@@ -148,9 +148,9 @@ def test_a_grid_render_puts_its_squares_at_the_tags_corners():
 def test_calibrate_on_25_aprilgrid_views_from_kalibrs_file(cli, tmp_path):
     """``cubeloc calibrate --board kalibr:FILE.yaml`` on 25 rendered views of a 6 x 6 grid
     (640 x 512): fx within 0.1 % of the camera that rendered them, at the noise floor."""
-    from calib.boards import parse_board
-    from calib.camera_info import read_camera_info
-    from fakes.board_views import synthetic_board_camera, write_board_images
+    from cubeloc.calib.boards import parse_board
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.fakes.board_views import synthetic_board_camera, write_board_images
 
     (tmp_path / "grid.yaml").write_text(KALIBR_YAML)
     camera = synthetic_board_camera(640, 512)

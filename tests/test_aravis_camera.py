@@ -10,9 +10,8 @@ import time
 
 import numpy as np
 import pytest
-
-from drivers.aravis_camera import AravisCamera
-from drivers.base import (
+from cubeloc.drivers.aravis_camera import AravisCamera
+from cubeloc.drivers.base import (
     CameraBusy,
     CameraNotFound,
     CameraSettings,
@@ -20,9 +19,9 @@ from drivers.base import (
     FrameTimeout,
     StreamBroken,
 )
-from drivers.fake_gige import GvFake
-from drivers.genicam import probe_features
-from drivers.reconnect import reopen_with_backoff
+from cubeloc.drivers.fake_gige import GvFake
+from cubeloc.drivers.genicam import probe_features
+from cubeloc.drivers.reconnect import reopen_with_backoff
 
 
 @pytest.fixture(autouse=True)
@@ -156,7 +155,7 @@ def test_the_lock_keeps_its_name_when_a_reconnect_reaches_the_camera_by_address(
     itself "GV01" rather than discovery's "Aravis-Fake-GV01". One camera, one lock: a
     second opener is still told who holds it (before: it got past the lock and failed on
     a register write timeout)."""
-    import drivers.aravis_camera as backend
+    import cubeloc.drivers.aravis_camera as backend
 
     with AravisCamera("127.0.0.1", CameraSettings()) as first:  # discovered
         first.start()

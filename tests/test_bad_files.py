@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 import structlog
 import yaml
+from cubeloc.calib.camera_info import paper_camera, read_camera_info, to_yaml, write_camera_info
+from cubeloc.daemon.cli import main
+from cubeloc.daemon.config import load_config
+from cubeloc.positioning.target import default_cube_yaml, parse_target
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from calib.camera_info import paper_camera, read_camera_info, to_yaml, write_camera_info
 from cubeloc.errors import ConfigError, InputFileError
-from daemon.cli import main
-from daemon.config import load_config
-from positioning.target import default_cube_yaml, parse_target
 
 CALIB = to_yaml(paper_camera())
 CUBE = "family: tag36h11\ncube: {side: 0.18, tag_size: 0.144, ids: [0, 1, 2, 3, 4, 5]}\n"
@@ -217,7 +217,7 @@ def test_bad_files_from_outside(tmp_path, good):
                    "--sequence", str(good / "seq"), "--out", str(tmp_path / "o.tum")], nan_calib),
         ("run", ["run", "--config", str(junk), "--check"], junk),
     )
-    processes = [subprocess.Popen([sys.executable, "-m", "daemon.cli", *argv], stdout=subprocess.PIPE,
+    processes = [subprocess.Popen([sys.executable, "-m", "cubeloc.daemon.cli", *argv], stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True, env={"PATH": "/usr/bin:/bin"},
                                   cwd=Path(__file__).resolve().parents[1]) for _, argv, _ in cases]
     for (verb, _, named), process in zip(cases, processes, strict=True):
@@ -336,7 +336,7 @@ def test_fuzz_config_value(tmp_path, field, value):
 
 def _sequence_with_a_truncated_frame(root: Path) -> Path:
     """Four frames; the third's PNG cut in half (a disk filled up while recording)."""
-    from drivers.sequence import SequenceWriter
+    from cubeloc.drivers.sequence import SequenceWriter
 
     with SequenceWriter(root / "seq") as writer:
         for k in range(4):
@@ -352,8 +352,8 @@ def test_a_truncated_frame_in_a_replay_is_dropped_and_counted_or_with_strict_sto
     import subprocess
     import sys
 
-    from drivers.base import CameraSettings, EndOfStream
-    from drivers.replay import open_replay_source
+    from cubeloc.drivers.base import CameraSettings, EndOfStream
+    from cubeloc.drivers.replay import open_replay_source
 
     third = _sequence_with_a_truncated_frame(tmp_path)
     camera = open_replay_source(str(tmp_path / "seq"), CameraSettings())
@@ -364,7 +364,7 @@ def test_a_truncated_frame_in_a_replay_is_dropped_and_counted_or_with_strict_sto
             stamps.append(camera.next_frame(1.0).stamp_ns)
     assert stamps == [1000, 1001, 1003] and camera.stats.incomplete == 1 and camera.stats.delivered == 3
 
-    argv = [sys.executable, "-m", "daemon.cli", "track", "--target", str(good / "target.yaml"),
+    argv = [sys.executable, "-m", "cubeloc.daemon.cli", "track", "--target", str(good / "target.yaml"),
             "--calib", str(good / "camera.yaml"), "--sequence", str(tmp_path / "seq"), "--out", str(tmp_path / "o.tum")]
     done = subprocess.run(argv, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr

@@ -15,11 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from calib.boards import parse_board
-from calib.detect import detect_board
-from calib.pipeline import ImageDetection, calibrate_views, views_from_detections
-from fakes.board_views import board_views, synthetic_board_camera
+from cubeloc.calib.boards import parse_board
+from cubeloc.calib.detect import detect_board
+from cubeloc.calib.pipeline import ImageDetection, calibrate_views, views_from_detections
+from cubeloc.fakes.board_views import board_views, synthetic_board_camera
 
 CAMERAS = {640: synthetic_board_camera(640, 512), 1280: synthetic_board_camera(1280, 1024)}
 # 1280 (chessboard only): one sample per pixel keeps the render time down; the chessboard

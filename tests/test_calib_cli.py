@@ -12,10 +12,14 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from cubeloc.calib.boards import parse_board
+from cubeloc.calib.camera_info import read_camera_info
+from cubeloc.fakes.board_views import (
+    synthetic_board_camera,
+    write_board_images,
+    write_board_sequence,
+)
 
-from calib.boards import parse_board
-from calib.camera_info import read_camera_info
-from fakes.board_views import synthetic_board_camera, write_board_images, write_board_sequence
 from tests.conftest import REPO, run_cli
 
 CHARUCO = "charuco:11x8:0.030:0.022:DICT_5X5_100"
@@ -171,7 +175,7 @@ def test_sigterm_during_live_capture_saves_what_it_has(tmp_path):
     write_board_sequence(sequence, parse_board(CHARUCO), CAMERA, count=20, seed=6, repeats=1, blank_every=0)
     out = tmp_path / "live.yaml"
     process = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "calibrate", "--camera", f"replay:{sequence}@pace",
+        [sys.executable, "-m", "cubeloc.daemon.cli", "calibrate", "--camera", f"replay:{sequence}@pace",
          "--board", CHARUCO, "--out", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
     )
@@ -193,7 +197,7 @@ def test_sigterm_during_live_capture_saves_what_it_has(tmp_path):
 
 
 def test_camera_owned_by_another_process_says_how_to_proceed(tmp_path):
-    from drivers.ownership import CameraLock
+    from cubeloc.drivers.ownership import CameraLock
 
     env = {**os.environ, "CUBELOC_LOCK_DIR": str(tmp_path / "locks")}
     os.environ["CUBELOC_LOCK_DIR"] = env["CUBELOC_LOCK_DIR"]
@@ -208,7 +212,7 @@ def test_camera_owned_by_another_process_says_how_to_proceed(tmp_path):
 
 
 def test_help_spells_out_what_board_sizes_count():
-    from daemon.cli import build_parser
+    from cubeloc.daemon.cli import build_parser
 
     parser = build_parser()
     calibrate = parser._subparsers._group_actions[0].choices["calibrate"]

@@ -15,16 +15,16 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from cubeloc.calib.boards import BoardSpecError, parse_board
+from cubeloc.calib.camera_info import CameraCalibration, read_camera_info, write_camera_info
+from cubeloc.calib.corners_cache import CACHE_NAME, load_cache
+from cubeloc.calib.coverage import CoverageTracker
+from cubeloc.calib.detect import detect_board
+from cubeloc.calib.pipeline import detect_images
+from cubeloc.calib.report import judge
+from cubeloc.calib.solve import Solution, SolveOptions
+from cubeloc.fakes.board_views import board_views, synthetic_board_camera, write_board_images
 
-from calib.boards import BoardSpecError, parse_board
-from calib.camera_info import CameraCalibration, read_camera_info, write_camera_info
-from calib.corners_cache import CACHE_NAME, load_cache
-from calib.coverage import CoverageTracker
-from calib.detect import detect_board
-from calib.pipeline import detect_images
-from calib.report import judge
-from calib.solve import Solution, SolveOptions
-from fakes.board_views import board_views, synthetic_board_camera, write_board_images
 from tests.conftest import REPO, run_cli
 
 CAMERA = synthetic_board_camera(640, 512)
@@ -128,7 +128,7 @@ def test_camera_info_written_by_ros_camera_calibration_loads(tmp_path):
 
 WRITER = """
 import sys, numpy as np
-from calib.camera_info import CameraCalibration, write_camera_info
+from cubeloc.calib.camera_info import CameraCalibration, write_camera_info
 k = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
 i = 0
 while True:
@@ -198,9 +198,9 @@ def test_coverage_accepts_new_views_only_and_says_what_is_missing(spec):
 
 @pytest.mark.parametrize("spec", sorted(COVERAGE_BOARDS))
 def test_coverage_finishes_once_near_far_tilted_and_corner_views_are_in(spec):
-    from calib.detect import Detection
-    from fakes.board_views import random_poses
-    from fakes.optics import project
+    from cubeloc.calib.detect import Detection
+    from cubeloc.fakes.board_views import random_poses
+    from cubeloc.fakes.optics import project
 
     board = parse_board(spec)
     points = board.object_points().astype(np.float64)
@@ -248,7 +248,7 @@ def test_generate_board_pdf_at_true_scale(tmp_path):
 
 
 def test_printed_board_is_found_and_measures_true_scale():
-    from calib.printable_board import board_sheet
+    from cubeloc.calib.printable_board import board_sheet
 
     board = parse_board("charuco:5x4:0.030:0.022:DICT_4X4_50")
     sheet = board_sheet(board, dpi=150)

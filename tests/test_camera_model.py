@@ -6,11 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import paper_camera, read_camera_info, write_camera_info
+from cubeloc.fakes.optics import project as true_project
+from cubeloc.positioning.camera_model import distort, project, project_with_jacobian, undistort
 
-from calib.camera_info import paper_camera, read_camera_info, write_camera_info
 from cubeloc.errors import InputFileError
-from fakes.optics import project as true_project
-from positioning.camera_model import distort, project, project_with_jacobian, undistort
 
 CAMERA = paper_camera()
 
@@ -41,7 +41,7 @@ def test_the_fisheye_model_agrees_with_fakes_optics_to_84_degrees_off_axis():
     """cv2.fisheye under positioning/ (with a skew, which cv2.fisheye takes apart from K),
     fakes' own equidistant model: pixels, rays back, the compiled Jacobian against finite
     differences, and the pixels a pinhole PnP solver is given."""
-    from positioning.camera_model import project_pose, solver_pixels
+    from cubeloc.positioning.camera_model import project_pose, solver_pixels
 
     rng = np.random.default_rng(4)
     theta, azimuth = np.radians(rng.uniform(0.0, 84.0, 300)), rng.uniform(0.0, 2 * np.pi, 300)

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from drivers.base import CaptureStats
-from drivers.clock import DeviceClockMapper
-from drivers.frame_accounting import FrameAccounting, Verdict
+from cubeloc.drivers.base import CaptureStats
+from cubeloc.drivers.clock import DeviceClockMapper
+from cubeloc.drivers.frame_accounting import FrameAccounting, Verdict
 
 MS = 1_000_000
 

@@ -14,12 +14,12 @@ import time
 from pathlib import Path
 
 import pytest
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.positioning.target import default_cube_yaml
 from gv_fake import FAKE_GV_CAMERA, GvFake
 from helpers import wait_until
 
-from calib.camera_info import paper_camera, write_camera_info
 from cubeloc.net import free_port
-from positioning.target import default_cube_yaml
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -44,7 +44,7 @@ def test_daemon_reconnects_when_the_gige_camera_restarts(tmp_path):
     fake = GvFake("GV07").start()
     env = {"CUBELOC_LOCK_DIR": str(tmp_path / "locks")}
     daemon = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
+        [sys.executable, "-m", "cubeloc.daemon.cli", "run", "--config", str(config)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
         env={**os.environ, **env},
     )

@@ -15,12 +15,12 @@ import threading
 from pathlib import Path
 
 import numpy as np
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.fakes.trajectories import make_trajectory
+from cubeloc.positioning.target import default_cube_yaml
 from helpers import wait_until
 
-from calib.camera_info import paper_camera, write_camera_info
 from cubeloc.net import free_port
-from fakes.trajectories import make_trajectory
-from positioning.target import default_cube_yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SECONDS, FPS = 3.0, 5.0  # the start of the paper's path: the cube in view, ~2.3 m away
@@ -52,7 +52,7 @@ def test_synthetic_camera_to_subscriber_process(tmp_path):
     notify.settimeout(90)
     env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "PYTHONUNBUFFERED": "1"}
     daemon = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "run", "--config", config],
+        [sys.executable, "-m", "cubeloc.daemon.cli", "run", "--config", config],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO,
     )
     notes: list[str] = []
@@ -117,12 +117,11 @@ def test_sighup_reloads_the_calibration_and_keeps_the_old_one_when_the_new_is_ba
     status while the daemon goes on with the old one; a good one is swapped in (the
     ``calibration`` queryable serves it) without a restart. Before: SIGHUP killed it, rc 129."""
     import zenoh
-
-    from calib.camera_info import CameraCalibration
+    from cubeloc.calib.camera_info import CameraCalibration
 
     port = free_port()
     config = write_config(tmp_path, port)
-    daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config", config],
+    daemon = subprocess.Popen([sys.executable, "-m", "cubeloc.daemon.cli", "run", "--config", config],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
     conf = zenoh.Config()

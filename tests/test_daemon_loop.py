@@ -16,14 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from helpers import ROUTER, end_process, helper_process, wait_until
-from ros2_msgs import decode
-
-from cubeloc.net import free_port
-from daemon.preflight import prepare_on_loopback
-from daemon.sdnotify import SystemdNotifier
-from daemon.service import Daemon
-from drivers.base import (
+from cubeloc.daemon.preflight import prepare_on_loopback
+from cubeloc.daemon.sdnotify import SystemdNotifier
+from cubeloc.daemon.service import Daemon
+from cubeloc.drivers.base import (
     CameraBase,
     CameraNotFound,
     CaptureStats,
@@ -32,8 +28,12 @@ from drivers.base import (
     FrameTimeout,
     StreamBroken,
 )
-from fakes import render_view
-from positioning.geometry import Transform, look_at
+from cubeloc.fakes import render_view
+from cubeloc.positioning.geometry import Transform, look_at
+from helpers import ROUTER, end_process, helper_process, wait_until
+from ros2_msgs import decode
+
+from cubeloc.net import free_port
 
 CAMERA_POSITION = np.array([1.2, -1.0, 0.9])
 

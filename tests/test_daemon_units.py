@@ -12,16 +12,15 @@ import time
 
 import numpy as np
 import pytest
-
-from calib.camera_info import paper_camera, write_camera_info
-from daemon.frame_queue import CapturedFrame, LatestFrameSlot
-from daemon.loop_stats import LoopStats
-from daemon.messages import UnpublishablePose, pose_message, pose_payload
-from daemon.sdnotify import SystemdNotifier
-from drivers.base import Frame
-from positioning.estimator import PoseEstimate, PoseSource, PoseState
-from positioning.geometry import Transform, look_at
-from positioning.target import default_cube_yaml
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from cubeloc.daemon.loop_stats import LoopStats
+from cubeloc.daemon.messages import UnpublishablePose, pose_message, pose_payload
+from cubeloc.daemon.sdnotify import SystemdNotifier
+from cubeloc.drivers.base import Frame
+from cubeloc.positioning.estimator import PoseEstimate, PoseSource, PoseState
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.target import default_cube_yaml
 
 
 def _frame(seq: int) -> CapturedFrame:
@@ -283,8 +282,8 @@ def test_port_in_use_exits_2_with_one_line(tmp_path, cli):
 def test_the_zenoh_start_up_line_shows_this_modes_listeners():
     """A client listens on nothing; the log showed Zenoh's per-mode defaults, among them a
     router's tcp/[::]:7447 that this session never opened."""
-    from daemon.config import ZenohConfig
-    from daemon.zenoh_session import build_zenoh_config, effective_settings
+    from cubeloc.daemon.config import ZenohConfig
+    from cubeloc.daemon.zenoh_session import build_zenoh_config, effective_settings
 
     client = effective_settings(build_zenoh_config(ZenohConfig(mode="client", connect=("tcp/127.0.0.1:7447",))))
     assert client["listen/endpoints"] == [] and client["connect/endpoints"] == ["tcp/127.0.0.1:7447"]
@@ -296,8 +295,8 @@ def test_the_zenoh_start_up_line_shows_this_modes_listeners():
 
 def test_the_config_turns_the_trackers_loop_closure_off(tmp_path):
     """``[positioning] loop_closure`` reaches the tracker the daemon builds (default off)."""
-    from daemon.config import load_config
-    from daemon.preflight import make_processor, prepare
+    from cubeloc.daemon.config import load_config
+    from cubeloc.daemon.preflight import make_processor, prepare
 
     _write_files(tmp_path)
     for text, expected in (("", False), ("loop_closure = true\n", True)):
@@ -314,9 +313,9 @@ def test_the_trackers_options_come_from_the_configuration_in_one_place():
     """preflight.processor_options: [positioning]'s face and residual limits and loop
     closure, the keyframe budget and bundle adjustment's changes, for the daemon, cubeloc
     track and the benchmarks alike; the defaults are the tracker's own."""
-    from daemon.config import Config, PositioningConfig
-    from daemon.preflight import processor_options
-    from positioning.tracking import ProcessorOptions
+    from cubeloc.daemon.config import Config, PositioningConfig
+    from cubeloc.daemon.preflight import processor_options
+    from cubeloc.positioning.tracking import ProcessorOptions
 
     assert processor_options(Config(), background=False) == ProcessorOptions.in_frame_loop()
     config = Config(positioning=PositioningConfig(allow_two_faces=False, max_reproj_rms_px=0.8, loop_closure=True))

@@ -12,8 +12,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import real_photographs
-
-from positioning.detection import LIBRARY_TO_UPRIGHT, DetectorOptions, TagDetector
+from cubeloc.positioning.detection import LIBRARY_TO_UPRIGHT, DetectorOptions, TagDetector
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -112,7 +111,7 @@ def test_many_detectors_created_and_collected_do_not_crash():
         """
         import gc
         import numpy as np
-        from positioning.detection import TagDetector
+        from cubeloc.positioning.detection import TagDetector
         import cv2
         dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
         image = np.full((300, 300), 255, np.uint8)

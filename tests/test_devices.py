@@ -8,13 +8,12 @@ import subprocess
 import sys
 import textwrap
 
+import cubeloc.drivers.ownership as ownership
 import pytest
-
-import drivers.ownership as ownership
-from drivers.base import CameraBusy, DeviceInfo
-from drivers.discovery import merge
-from drivers.ownership import CameraLock
-from drivers.usb import UsbFacts, describe, is_camera, list_usb_cameras
+from cubeloc.drivers.base import CameraBusy, DeviceInfo
+from cubeloc.drivers.discovery import merge
+from cubeloc.drivers.ownership import CameraLock
+from cubeloc.drivers.usb import UsbFacts, describe, is_camera, list_usb_cameras
 
 U3V = (0xEF, 0x05)
 
@@ -75,7 +74,7 @@ def test_lock_is_exclusive_and_names_the_holder_across_processes(tmp_path, monke
             import logging, sys
             import structlog
             structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
-            from drivers.ownership import CameraLock
+            from cubeloc.drivers.ownership import CameraLock
             lock = CameraLock("Basler-22334455"); lock.acquire()
             print("held", flush=True); sys.stdin.read()
         """)],
@@ -96,7 +95,7 @@ def test_lock_is_exclusive_and_names_the_holder_across_processes(tmp_path, monke
 def test_busy_message_names_the_cubeloc_verb():
     message = ownership.busy_message("cam", 42, "/usr/bin/python3 /opt/cubeloc/.venv/bin/cubeloc run --config x")
     assert "held by pid 42 (cubeloc run)" in message
-    message = ownership.busy_message("cam", 43, "/usr/bin/python3 -m daemon.cli record --out d")
+    message = ownership.busy_message("cam", 43, "/usr/bin/python3 -m cubeloc.daemon.cli record --out d")
     assert "(cubeloc record)" in message
 
 

@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# the folders of the installed package ``cubeloc``: cubeloc/ itself, and the five that
+# pyproject.toml maps to cubeloc.daemon, cubeloc.drivers, ...
 PACKAGES = ("cubeloc", "daemon", "drivers", "calib", "positioning", "fakes")
 
 
@@ -19,6 +21,7 @@ def _modules_with_examples() -> list[str]:
         for path in sorted((REPO / package).rglob("*.py")):
             if ">>>" in path.read_text(encoding="utf-8"):
                 parts = path.relative_to(REPO).with_suffix("").parts
+                parts = parts if package == "cubeloc" else ("cubeloc", *parts)
                 names.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
     return names
 
@@ -27,7 +30,7 @@ MODULES = _modules_with_examples()
 
 
 def test_the_modules_with_examples_are_found():
-    assert "positioning.tracking.pose_fit" in MODULES and "positioning.evaluation" in MODULES
+    assert "cubeloc.positioning.tracking.pose_fit" in MODULES and "cubeloc.positioning.evaluation" in MODULES
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 import structlog
 import zenoh
+from cubeloc.calib.camera_info import CameraCalibration, write_camera_info
+from cubeloc.daemon.cli import main
+from cubeloc.daemon.commands.doctor import FAIL, OK, WARN, packet_size_verdict
+from cubeloc.drivers.ownership import CameraLock
+from cubeloc.positioning.target import default_cube_yaml
 from gv_fake import FAKE_GV_CAMERA, GvFake, gvcp_listening
 
-from calib.camera_info import CameraCalibration, write_camera_info
 from cubeloc.net import free_port
-from daemon.cli import main
-from daemon.commands.doctor import FAIL, OK, WARN, packet_size_verdict
-from drivers.ownership import CameraLock
-from positioning.target import default_cube_yaml
 
 NAME = "doctortest"
 REPO = Path(__file__).resolve().parents[1]
@@ -134,7 +134,7 @@ def run_as_printed(command: str, tmp_path) -> None:
     assert words[0] == "cubeloc", command
     # Ctrl-C as a technician's terminal delivers it: a suite started in the background
     # (``make test &``) ignores SIGINT, and its children would inherit that and never stop
-    process = subprocess.Popen([sys.executable, "-m", "daemon.cli", *words[1:]], cwd=tmp_path, text=True,
+    process = subprocess.Popen([sys.executable, "-m", "cubeloc.daemon.cli", *words[1:]], cwd=tmp_path, text=True,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
@@ -256,8 +256,8 @@ def test_zenoh_check_logs_in_with_the_daemons_credentials(tmp_path, capsys):
     ("1000", 64, OK, "holds 64 buffers"),
 ])
 def test_usbfs_budget_against_the_stream_on_a_fake_sysfs(tmp_path, budget, buffers, level, words):
-    from daemon.commands.doctor_checks import USBFS_PARAMETER, check_usbfs
-    from daemon.config import Config
+    from cubeloc.daemon.commands.doctor_checks import USBFS_PARAMETER, check_usbfs
+    from cubeloc.daemon.config import Config
 
     parameter = tmp_path / USBFS_PARAMETER
     parameter.parent.mkdir(parents=True)
@@ -275,9 +275,9 @@ def test_the_stream_settings_reach_aravis():
     """camera.stream_buffers, usb_mode and usb_bandwidth_mbps from the config to the
     backend: the buffers in flight on the fake camera's stream (a USB3 camera is not at
     hand here: the USB mode and bandwidth are applied only to one)."""
-    from daemon.cameras import make_camera
-    from daemon.config import Config
-    from drivers.aravis_camera import AravisCamera
+    from cubeloc.daemon.cameras import make_camera
+    from cubeloc.daemon.config import Config
+    from cubeloc.drivers.aravis_camera import AravisCamera
 
     config = Config.model_validate({"camera": {"source": "aravis:Fake_1", "width": 512, "height": 512,
                                                "stream_buffers": 3, "usb_mode": "sync"}})

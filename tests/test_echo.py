@@ -9,12 +9,12 @@ import time
 
 import numpy as np
 import pytest
+from cubeloc.daemon.messages import CameraStatus, StatusReport, pose_message, status_message
+from cubeloc.daemon.publisher import ZenohPublisher
+from cubeloc.positioning.estimator import PoseEstimate, PoseState
+from cubeloc.positioning.geometry import look_at
 
 from cubeloc.net import free_port
-from daemon.messages import CameraStatus, StatusReport, pose_message, status_message
-from daemon.publisher import ZenohPublisher
-from positioning.estimator import PoseEstimate, PoseState
-from positioning.geometry import look_at
 
 
 @pytest.fixture
@@ -43,7 +43,7 @@ def _status(poses: int) -> bytes:
 
 def _run_echo(port: int, publisher: ZenohPublisher, *extra: str) -> str:
     echo = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "echo", "--connect", f"tcp/127.0.0.1:{port}", "--no-scouting",
+        [sys.executable, "-m", "cubeloc.daemon.cli", "echo", "--connect", f"tcp/127.0.0.1:{port}", "--no-scouting",
          "--count", "3", "--duration", "60", *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -86,7 +86,7 @@ def test_echo_says_when_no_daemon_answers_and_exits_1():
     """A dead port (nothing listens): one line saying so, exit 1 (before: nothing printed,
     exit 0, as if all were well)."""
     port = free_port()
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "echo", "--connect", f"tcp/127.0.0.1:{port}",
+    done = subprocess.run([sys.executable, "-m", "cubeloc.daemon.cli", "echo", "--connect", f"tcp/127.0.0.1:{port}",
                            "--no-scouting", "--wait", "1.5"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 1, (done.stdout, done.stderr)
     assert done.stdout == ""
@@ -130,9 +130,9 @@ def test_the_example_subscriber_takes_a_zenoh_file_and_says_when_nothing_answers
 
 
 def test_echo_names_the_source_where_it_says_more_than_the_state():
-    from daemon.commands.echo import format_pose
-    from daemon.messages import pose_payload
-    from positioning.estimator import PoseSource
+    from cubeloc.daemon.commands.echo import format_pose
+    from cubeloc.daemon.messages import pose_payload
+    from cubeloc.positioning.estimator import PoseSource
 
     where = look_at(np.array([1.5, -1.5, 0.91]), np.zeros(3))
     held = pose_payload(5, 1_700_000_000_000_000_000, PoseEstimate(where, PoseState.TRACKING, 0, (), 0.0, None,

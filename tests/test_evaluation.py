@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from positioning.evaluation import (
+from cubeloc.positioning.evaluation import (
     absolute_trajectory_error,
     associate,
     relative_pose_error,
     scale_drift,
 )
-from positioning.geometry import Transform, look_at
-from positioning.trajectory_io import StampedPose, read_tum, write_tum
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.trajectory_io import StampedPose, read_tum, write_tum
 
 
 def straight_line(n: int = 101, length_m: float = 2.0, dt_ns: int = 100_000_000) -> list[StampedPose]:

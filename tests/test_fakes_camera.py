@@ -6,17 +6,22 @@ import time
 
 import numpy as np
 import pytest
-
-from calib.camera_info import paper_camera, read_camera_info
-from daemon.cameras import make_camera
-from drivers.base import Camera, CameraNotFound, CameraSettings, EndOfStream, FeatureNotSupported
-from drivers.sequence import read_image, read_sequence_index
-from fakes import TRAJECTORIES, SyntheticCamera, default_room, make_trajectory
-from fakes.scenarios import TIMING as SCENARIO_TIMING
-from fakes.trajectories import DEFAULT_FPS_OF, EPOCH_NS, TrajectoryError
-from positioning.geometry import look_at
-from positioning.target import load_target, make_cube
-from positioning.trajectory_io import StampedPose, read_tum, write_tum
+from cubeloc.calib.camera_info import paper_camera, read_camera_info
+from cubeloc.daemon.cameras import make_camera
+from cubeloc.drivers.base import (
+    Camera,
+    CameraNotFound,
+    CameraSettings,
+    EndOfStream,
+    FeatureNotSupported,
+)
+from cubeloc.drivers.sequence import read_image, read_sequence_index
+from cubeloc.fakes import TRAJECTORIES, SyntheticCamera, default_room, make_trajectory
+from cubeloc.fakes.scenarios import TIMING as SCENARIO_TIMING
+from cubeloc.fakes.trajectories import DEFAULT_FPS_OF, EPOCH_NS, TrajectoryError
+from cubeloc.positioning.geometry import look_at
+from cubeloc.positioning.target import load_target, make_cube
+from cubeloc.positioning.trajectory_io import StampedPose, read_tum, write_tum
 
 CUBE = make_cube()
 PAPER = paper_camera()
@@ -187,8 +192,8 @@ def test_a_tum_file_plays_as_a_trajectory_and_poses_outside_the_room_are_refused
 
 
 def test_simulate_offers_every_trajectory():
-    from daemon.commands.simulate import TRAJECTORY_NAMES
-    from fakes.trajectories import TRAJECTORIES
+    from cubeloc.daemon.commands.simulate import TRAJECTORY_NAMES
+    from cubeloc.fakes.trajectories import TRAJECTORIES
 
     assert TRAJECTORY_NAMES == TRAJECTORIES
 
@@ -205,7 +210,7 @@ def test_simulate_sigterm_leaves_nothing_and_folders_take_the_usual_mode(tmp_pat
     import time
 
     out = tmp_path / "long"
-    process = subprocess.Popen([sys.executable, "-m", "daemon.cli", "simulate", "--trajectory", "paper", "--out", str(out)],
+    process = subprocess.Popen([sys.executable, "-m", "cubeloc.daemon.cli", "simulate", "--trajectory", "paper", "--out", str(out)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not any(tmp_path.glob(".long.*.partial/mav0/cam0/data/*.png")):
@@ -218,7 +223,7 @@ def test_simulate_sigterm_leaves_nothing_and_folders_take_the_usual_mode(tmp_pat
 
     umask = os.umask(0o022)
     os.umask(umask)
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "simulate", "--trajectory", "paper", "--seconds", "0.2",
+    done = subprocess.run([sys.executable, "-m", "cubeloc.daemon.cli", "simulate", "--trajectory", "paper", "--seconds", "0.2",
                            "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     for folder in (out, out / "mav0", out / "mav0" / "cam0", out / "mav0" / "cam0" / "data"):
@@ -230,9 +235,9 @@ def test_simulate_help_gives_every_trajectorys_default_length():
     import subprocess
     import sys
 
-    from fakes.trajectories import DEFAULT_SECONDS
+    from cubeloc.fakes.trajectories import DEFAULT_SECONDS
 
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "simulate", "--help"], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-m", "cubeloc.daemon.cli", "simulate", "--help"], capture_output=True, text=True,
                           timeout=60, env={"COLUMNS": "1000", **__import__("os").environ})
     text = " ".join(done.stdout.split())
     for name, seconds in DEFAULT_SECONDS.items():

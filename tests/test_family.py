@@ -9,9 +9,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from drivers.sequence import read_image, read_sequence_index
-from fakes.family import (
+from cubeloc.drivers.sequence import read_image, read_sequence_index
+from cubeloc.fakes.family import (
     BLANK_VIEW_SHARE,
     CUBE_HALF,
     RESOLUTIONS,
@@ -19,8 +18,8 @@ from fakes.family import (
     make_case,
     render_case,
 )
-from fakes.room import Room
-from fakes.trajectories import camera_from_yaw_pitch
+from cubeloc.fakes.room import Room
+from cubeloc.fakes.trajectories import camera_from_yaw_pitch
 
 SEEDS = (0, 3, 6, 13)  # a hall, two corridors, a room (the draws of the family as it is)
 

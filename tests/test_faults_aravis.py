@@ -13,14 +13,14 @@ import shutil
 import threading
 
 import pytest
+from cubeloc.daemon.preflight import prepare_on_loopback
+from cubeloc.daemon.sdnotify import SystemdNotifier
+from cubeloc.daemon.service import Daemon
+from cubeloc.drivers.aravis_camera import AravisCamera
+from cubeloc.drivers.fake_gige import FAKE_GV_CAMERA, GvFake
 from helpers import wait_until
 
 from cubeloc.net import free_port
-from daemon.preflight import prepare_on_loopback
-from daemon.sdnotify import SystemdNotifier
-from daemon.service import Daemon
-from drivers.aravis_camera import AravisCamera
-from drivers.fake_gige import FAKE_GV_CAMERA, GvFake
 
 pytestmark = pytest.mark.skipif(shutil.which(FAKE_GV_CAMERA) is None, reason=f"{FAKE_GV_CAMERA} not installed (aravis-tools)")
 
@@ -69,7 +69,7 @@ class FaultyAravisCamera(AravisCamera):
 
     def open(self) -> None:
         super().open()
-        from drivers.aravis_camera import _aravis
+        from cubeloc.drivers.aravis_camera import _aravis
 
         Aravis, _ = _aravis()
         self._stream = StreamWithBadBuffers(self._stream, Aravis)
@@ -114,7 +114,7 @@ def test_incomplete_buffers_and_usb_unplug_at_the_aravis_boundary(tmp_path, monk
         assert report.extra["faults"]["camera_incomplete"] == 3
         assert report.camera.dropped >= 3 and report.camera.state == "streaming"
         # ...and by cause: a cable (missing packets) told apart from a setting (size mismatch)
-        from drivers.aravis_camera import _aravis
+        from cubeloc.drivers.aravis_camera import _aravis
 
         camera._stream.status = _aravis()[0].BufferStatus.SIZE_MISMATCH
         camera._stream.bad = 2

@@ -13,14 +13,14 @@ import time
 import numpy as np
 import pytest
 import structlog
+from cubeloc.daemon.capture import STAMP_RESTART_FRAMES
+from cubeloc.daemon.preflight import prepare_on_loopback
+from cubeloc.daemon.sdnotify import SystemdNotifier
+from cubeloc.daemon.service import Daemon
+from cubeloc.fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
+from cubeloc.positioning.geometry import quaternion_angle_deg
 
 from cubeloc.net import free_port
-from daemon.capture import STAMP_RESTART_FRAMES
-from daemon.preflight import prepare_on_loopback
-from daemon.sdnotify import SystemdNotifier
-from daemon.service import Daemon
-from fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
-from positioning.geometry import quaternion_angle_deg
 
 FPS = 30.0
 WRONG_POSITION_M = 0.02
@@ -235,9 +235,9 @@ def test_clock_step_back_restarts_the_timeline_and_resets_the_processor(run):
 
 
 def test_frame_checks_at_the_boundary_one_by_one():
-    from daemon.capture import CaptureThread
-    from daemon.frame_queue import LatestFrameSlot
-    from drivers.base import CameraSettings, Frame
+    from cubeloc.daemon.capture import CaptureThread
+    from cubeloc.daemon.frame_queue import LatestFrameSlot
+    from cubeloc.drivers.base import CameraSettings, Frame
 
     capture = CaptureThread("test", CameraSettings(width=4, height=3), LatestFrameSlot(), threading.Event())
     good = np.zeros((3, 4), np.uint8)

@@ -21,11 +21,16 @@ import time
 
 import numpy as np
 import pytest
+from cubeloc.calib.boards import parse_board
+from cubeloc.calib.camera_info import (
+    CameraCalibration,
+    read_camera_info,
+    to_yaml,
+    write_camera_info,
+)
+from cubeloc.drivers.sequence import SequenceWriter, read_image, read_sequence_index
+from cubeloc.fakes.board_views import board_views, synthetic_board_camera
 
-from calib.boards import parse_board
-from calib.camera_info import CameraCalibration, read_camera_info, to_yaml, write_camera_info
-from drivers.sequence import SequenceWriter, read_image, read_sequence_index
-from fakes.board_views import board_views, synthetic_board_camera
 from tests.conftest import REPO
 
 KILLS = 20
@@ -126,7 +131,7 @@ def test_sigterm_while_calibrate_writes_finishes_the_writes(board_sequence, tmp_
     sequence, board = board_sequence
     out = tmp_path / "live.yaml"
     process = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "calibrate", "--camera", f"replay:{sequence}",
+        [sys.executable, "-m", "cubeloc.daemon.cli", "calibrate", "--camera", f"replay:{sequence}",
          "--board", board, "--out", str(out), "--min-views", "6", "--max-views", "8"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
     )

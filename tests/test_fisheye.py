@@ -9,15 +9,14 @@ import shutil
 
 import numpy as np
 from conftest import real_photographs
-
-from calib.boards import parse_board
-from calib.camera_info import read_camera_info
-from fakes import render_view
-from fakes.board_views import write_board_images
-from fakes.lenses import lens_calibration
-from positioning.geometry import Transform, look_at
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import make_cube
+from cubeloc.calib.boards import parse_board
+from cubeloc.calib.camera_info import read_camera_info
+from cubeloc.fakes import render_view
+from cubeloc.fakes.board_views import write_board_images
+from cubeloc.fakes.lenses import lens_calibration
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import make_cube
 
 GRID = "aprilgrid:6x6:0.088:0.3"
 # TUM-VI cam0's published equidistant calibration at 512 x 512; its 1024 x 1024 frames are
@@ -119,10 +118,10 @@ def test_a_very_wide_fisheye_is_solved_from_another_start():
     """f 200 px at 640x480: 12 views of a grid projected exactly (0.05 px of noise). From
     OpenCV's own start (f = larger side / pi) cv2.fisheye.calibrate ends at 72 px; the solve
     starts from several focal lengths and keeps the best."""
-    from calib.camera_info import CameraCalibration
-    from calib.solve import SolveOptions, View, solve
-    from fakes.board_views import random_poses
-    from fakes.optics import project
+    from cubeloc.calib.camera_info import CameraCalibration
+    from cubeloc.calib.solve import SolveOptions, View, solve
+    from cubeloc.fakes.board_views import random_poses
+    from cubeloc.fakes.optics import project
 
     board = parse_board(GRID)
     camera = CameraCalibration(640, 480, np.array([[200.0, 0.0, 321.0], [0.0, 200.0, 239.0], [0.0, 0.0, 1.0]]),
@@ -141,8 +140,8 @@ def test_the_tag_search_field_of_a_fisheye_seeing_past_90_degrees():
     """TUM-VI's camera (1024x1024, f 382 px) sees 108 deg off axis in its image corners: those
     rays come back from cv2.fisheye mirrored through the centre (x, y of +-106), and the tag
     search's field is bounded by the rays that are ahead (x, y within +-4.5)."""
-    from calib.camera_info import CameraCalibration
-    from positioning.tag_search import _field_of_view
+    from cubeloc.calib.camera_info import CameraCalibration
+    from cubeloc.positioning.tag_search import _field_of_view
 
     camera = CameraCalibration(1024, 1024, np.array([[381.5, 0.0, 510.2], [0.0, 381.3, 514.2], [0.0, 0.0, 1.0]]),
                                np.array([0.0044, -0.0001, -0.002, 0.0004]), "equidistant")
@@ -151,7 +150,7 @@ def test_the_tag_search_field_of_a_fisheye_seeing_past_90_degrees():
 
 
 def _tum_vi_camera():
-    from calib.camera_info import CameraCalibration
+    from cubeloc.calib.camera_info import CameraCalibration
 
     return CameraCalibration(1024, 1024, np.array([[381.5, 0.0, 510.2], [0.0, 381.3, 514.2], [0.0, 0.0, 1.0]]),
                              np.array([0.0044, -0.0001, -0.002, 0.0004]), "equidistant")
@@ -171,9 +170,9 @@ def test_pixels_seeing_past_90_degrees_are_told_apart_and_kept_out_of_the_featur
     and undistort() returns it mirrored through the centre, so ``ahead`` tells those pixels
     apart (89 deg ahead, 91 deg not, in every direction), and neither the tracker's features
     nor the relocaliser's corners are born there, nor do tracks go there."""
-    from positioning.camera_model import ahead, ahead_mask
-    from positioning.tracking.features import KltFrontEnd
-    from positioning.tracking.options import FeatureOptions
+    from cubeloc.positioning.camera_model import ahead, ahead_mask
+    from cubeloc.positioning.tracking.features import KltFrontEnd
+    from cubeloc.positioning.tracking.options import FeatureOptions
 
     camera = _tum_vi_camera()
     for azimuth in np.linspace(0.0, 2 * np.pi, 9)[:-1]:

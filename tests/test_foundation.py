@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import (
+    CameraCalibration,
+    paper_camera,
+    read_camera_info,
+    write_camera_info,
+)
+from cubeloc.daemon.config import load_config
+from cubeloc.positioning.geometry import Transform, canonical_quaternion, look_at
+from cubeloc.positioning.target import load_target, make_cube
 
-from calib.camera_info import CameraCalibration, paper_camera, read_camera_info, write_camera_info
 from cubeloc.atomic import atomic_open
 from cubeloc.errors import ConfigError, InputFileError
-from daemon.config import load_config
-from positioning.geometry import Transform, canonical_quaternion, look_at
-from positioning.target import load_target, make_cube
 
 
 def test_config_defaults_and_file(tmp_path):
@@ -154,8 +159,7 @@ def test_cli_help_and_user_errors(cli):
 
 def test_ray_grid_inverts_opencv_projection_exactly():
     import cv2
-
-    from fakes.optics import project, ray_grid
+    from cubeloc.fakes.optics import project, ray_grid
 
     calibration = CameraCalibration(
         320, 256, [[420.0, 0, 159.5], [0, 421.0, 127.5], [0, 0, 1]], [-0.3, 0.12, 1e-3, -2e-3, -0.02]

@@ -20,25 +20,25 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import write_camera_info
+from cubeloc.daemon.config import FoxgloveConfig
+from cubeloc.daemon.frame_queue import CapturedFrame
+from cubeloc.daemon.viewer import LiveViewer
+from cubeloc.drivers.base import Frame
+from cubeloc.fakes import render_view
+from cubeloc.fakes.sequence import write_synthetic_sequence
+from cubeloc.positioning.camera_model import project
+from cubeloc.positioning.estimator import FrameResult
+from cubeloc.positioning.frames import RobotFrames
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.target import default_cube_yaml, make_cube
 from foxglove_client import FoxgloveClient
 from helpers import half_resolution, wait_until
 from mcap.exceptions import EndOfFile
 from mcap.reader import NonSeekingReader, make_reader
 from test_daemon_loop import CAMERA_POSITION, Script, make_prepared, start_daemon
 
-from calib.camera_info import write_camera_info
 from cubeloc.net import free_port
-from daemon.config import FoxgloveConfig
-from daemon.frame_queue import CapturedFrame
-from daemon.viewer import LiveViewer
-from drivers.base import Frame
-from fakes import render_view
-from fakes.sequence import write_synthetic_sequence
-from positioning.camera_model import project
-from positioning.estimator import FrameResult
-from positioning.frames import RobotFrames
-from positioning.geometry import Transform, look_at
-from positioning.target import default_cube_yaml, make_cube
 
 REPO = Path(__file__).resolve().parents[1]
 TOPICS = {
@@ -166,7 +166,7 @@ def test_a_client_that_speaks_garbage_is_dropped_or_told_and_the_daemon_goes_on(
 
 
 def test_a_viewer_stuck_on_a_frame_never_holds_up_the_loop_it_drops_and_counts(monkeypatch):
-    from calib.camera_info import paper_camera
+    from cubeloc.calib.camera_info import paper_camera
 
     viewer = LiveViewer(FoxgloveConfig(listen=f"127.0.0.1:{free_port()}"), make_cube(), paper_camera(),
                         RobotFrames(Transform.identity(), Transform.identity()))
@@ -192,7 +192,7 @@ def test_a_viewer_stuck_on_a_frame_never_holds_up_the_loop_it_drops_and_counts(m
 
 
 def _config_file(tmp_path: Path, listen: str) -> Path:
-    from calib.camera_info import paper_camera
+    from cubeloc.calib.camera_info import paper_camera
 
     write_camera_info(tmp_path / "camera.yaml", paper_camera())
     (tmp_path / "target.yaml").write_text(default_cube_yaml())
@@ -281,7 +281,7 @@ def test_a_kill_9_leaves_an_mcap_file_readable_up_to_its_last_chunk(tmp_path):
     sequence = _sequence(tmp_path, 20.0)
     mcap = tmp_path / "killed.mcap"
     process = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "track", "--target", str(sequence / "target.yaml"), "--calib",
+        [sys.executable, "-m", "cubeloc.daemon.cli", "track", "--target", str(sequence / "target.yaml"), "--calib",
          str(sequence / "camera.yaml"), "--sequence", str(sequence), "--out", str(tmp_path / "out.tum"),
          "--mcap", str(mcap)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -310,16 +310,15 @@ def test_a_kill_9_leaves_an_mcap_file_readable_up_to_its_last_chunk(tmp_path):
 
 
 def test_live_calibration_shows_the_board_the_coverage_and_the_hint_in_foxglove(tmp_path):
+    from cubeloc.calib.boards import parse_board
+    from cubeloc.fakes.board_views import write_board_sequence
     from test_calib_cli import CAMERA, CHARUCO
-
-    from calib.boards import parse_board
-    from fakes.board_views import write_board_sequence
 
     sequence = tmp_path / "seq"
     write_board_sequence(sequence, parse_board(CHARUCO), CAMERA, count=30, seed=6)
     port = free_port()
     process = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "calibrate", "--camera", f"replay:{sequence}@pace", "--board", CHARUCO,
+        [sys.executable, "-m", "cubeloc.daemon.cli", "calibrate", "--camera", f"replay:{sequence}@pace", "--board", CHARUCO,
          "--out", str(tmp_path / "live.yaml"), "--foxglove", f"127.0.0.1:{port}"],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -16,18 +16,17 @@ import warnings
 import cv2
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import CameraCalibration, paper_camera
+from cubeloc.fakes import render_view
+from cubeloc.positioning.detection import TagDetector
+from cubeloc.positioning.estimator import FrameResult, PoseState
+from cubeloc.positioning.range_map import camera_on_sphere
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.target_pose import PoseOptions, unique_target_detections
+from cubeloc.positioning.tracking.processor import TrackingProcessor
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
-
-from calib.camera_info import CameraCalibration, paper_camera
-from fakes import render_view
-from positioning.detection import TagDetector
-from positioning.estimator import FrameResult, PoseState
-from positioning.range_map import camera_on_sphere
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import make_cube
-from positioning.target_pose import PoseOptions, unique_target_detections
-from positioning.tracking.processor import TrackingProcessor
 
 W, H = 400, 320
 FOCAL = 500.0

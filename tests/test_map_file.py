@@ -14,22 +14,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.fakes import render_view
+from cubeloc.fakes.room import Box, Room
+from cubeloc.fakes.sequence import write_synthetic_sequence
+from cubeloc.fakes.trajectories import trajectory_at
+from cubeloc.positioning.camera_model import project
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.tracking.map import Map
+from cubeloc.positioning.tracking.map_file import SCHEMA, load_map, save_map
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.processor import TrackingProcessor
+from cubeloc.positioning.tracking.relocalise import Relocaliser
 from helpers import half_resolution
 
-from calib.camera_info import paper_camera, write_camera_info
 from cubeloc.errors import InputFileError
-from fakes import render_view
-from fakes.room import Box, Room
-from fakes.sequence import write_synthetic_sequence
-from fakes.trajectories import trajectory_at
-from positioning.camera_model import project
-from positioning.geometry import Transform
-from positioning.target import make_cube
-from positioning.tracking.map import Map
-from positioning.tracking.map_file import SCHEMA, load_map, save_map
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.processor import TrackingProcessor
-from positioning.tracking.relocalise import Relocaliser
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -122,9 +122,9 @@ def test_a_map_write_killed_halfway_leaves_the_old_file(tmp_path):
         big.add_point(point_id, rng.normal(0, 2, 3), 0)
     save_map(path, big, calibration, cube)
     script = ("import sys; sys.path.insert(0, 'tests')\n"
-              "from calib.camera_info import paper_camera\n"
-              "from positioning.target import make_cube\n"
-              "from positioning.tracking.map_file import load_map, save_map\n"
+              "from cubeloc.calib.camera_info import paper_camera\n"
+              "from cubeloc.positioning.target import make_cube\n"
+              "from cubeloc.positioning.tracking.map_file import load_map, save_map\n"
               f"m, _ = load_map({str(path)!r}, paper_camera(), make_cube())\n"
               "print('ready', flush=True)\n"
               f"while True: save_map({str(path)!r}, m, paper_camera(), make_cube())\n")
@@ -144,7 +144,7 @@ def mapped(tmp_path_factory):
     work = tmp_path_factory.mktemp("mapped")
     sequence = work / "orbit"
     write_synthetic_sequence(sequence, "orbit", seconds=6.0, fps=10.0, seed=2, calibration=half_resolution())
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "track", "--target", str(sequence / "target.yaml"),
+    done = subprocess.run([sys.executable, "-m", "cubeloc.daemon.cli", "track", "--target", str(sequence / "target.yaml"),
                            "--calib", str(sequence / "camera.yaml"), "--sequence", str(sequence), "--out",
                            str(work / "orbit.tum"), "--save-map", str(work / "orbit.map"), "--no-plot"],
                           cwd=REPO, capture_output=True, text=True, timeout=300)
@@ -286,10 +286,10 @@ def test_a_loaded_maps_points_are_found_again_where_the_pose_puts_them_and_retir
 def _daemon(sequence: Path, map_file: Path, port: int, **map_section):
     import threading
 
-    from daemon.config import Config
-    from daemon.preflight import prepare
-    from daemon.sdnotify import SystemdNotifier
-    from daemon.service import Daemon
+    from cubeloc.daemon.config import Config
+    from cubeloc.daemon.preflight import prepare
+    from cubeloc.daemon.sdnotify import SystemdNotifier
+    from cubeloc.daemon.service import Daemon
 
     config = Config.model_validate({
         "name": "maptest",
@@ -306,11 +306,11 @@ def _daemon(sequence: Path, map_file: Path, port: int, **map_section):
 
 
 def test_the_daemon_saves_its_map_and_boots_on_it_without_the_cube(mapped, tmp_path, listeners):
+    from cubeloc.drivers.sequence import SequenceWriter
+    from cubeloc.positioning.tracking.map_file import read_header
     from helpers import wait_until
 
     from cubeloc.net import free_port
-    from drivers.sequence import SequenceWriter
-    from positioning.tracking.map_file import read_header
 
     _, orbit = mapped
     map_file = tmp_path / "robot.map"

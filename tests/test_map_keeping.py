@@ -5,10 +5,9 @@ along the drift (Map.correct), and a loaded map's points that are no longer ther
 from __future__ import annotations
 
 import numpy as np
-
-from positioning.geometry import Transform
-from positioning.tracking.map import Map
-from positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.map import Map
+from cubeloc.positioning.tracking.options import TrackerOptions
 
 
 def test_the_targets_return_spreads_its_correction_along_the_drift():

@@ -9,18 +9,17 @@ import math
 
 import numpy as np
 import pytest
+from cubeloc.daemon.cli import main
+from cubeloc.daemon.config import FramesConfig, tomllib
+from cubeloc.daemon.messages import encode, pose_payload
+from cubeloc.fakes.odometry import camera_on_base, figure_eight, wheel_odometry, write_odometry
+from cubeloc.fakes.trajectories import EPOCH_NS
+from cubeloc.positioning.estimator import PoseEstimate, PoseSource, PoseState
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.mount import MountError, make_pairs, solve_mount
+from cubeloc.positioning.target import default_cube_yaml, make_cube
+from cubeloc.positioning.tracking.odometry import OdometryBuffer
 from scipy.spatial.transform import Rotation
-
-from daemon.cli import main
-from daemon.config import FramesConfig, tomllib
-from daemon.messages import encode, pose_payload
-from fakes.odometry import camera_on_base, figure_eight, wheel_odometry, write_odometry
-from fakes.trajectories import EPOCH_NS
-from positioning.estimator import PoseEstimate, PoseSource, PoseState
-from positioning.geometry import Transform
-from positioning.mount import MountError, make_pairs, solve_mount
-from positioning.target import default_cube_yaml, make_cube
-from positioning.tracking.odometry import OdometryBuffer
 
 OPTICAL = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix()  # z ahead, x right, on a base x ahead
 FLOOR_Z = -make_cube().cube.side_m / 2  # the cube's bottom face: the floor of its frame

@@ -5,17 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from calib.camera_info import paper_camera
-from fakes import render_view
-from positioning.detection import TagDetector
-from positioning.geometry import look_at
-from positioning.observer import TargetObserver
-from positioning.range_map import camera_on_sphere
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import make_cube
-from positioning.target_pose import unique_target_detections
-from positioning.tracking import TrackingProcessor
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.fakes import render_view
+from cubeloc.positioning.detection import TagDetector
+from cubeloc.positioning.geometry import look_at
+from cubeloc.positioning.observer import TargetObserver
+from cubeloc.positioning.range_map import camera_on_sphere
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.target_pose import unique_target_detections
+from cubeloc.positioning.tracking import TrackingProcessor
 
 CUBE = make_cube()
 CAMERA = paper_camera()
@@ -63,7 +62,7 @@ def test_the_masked_search_paints_the_quiet_zone_grey_level_numpy_would_give():
     """The masked search's white level (the 90th percentile of the region's pixels) comes
     from a histogram of the grey levels: it must equal numpy's linear percentile, on
     uniform, constant, two-level and tiny sets of pixels."""
-    from positioning.tag_search import grey_percentile
+    from cubeloc.positioning.tag_search import grey_percentile
 
     rng = np.random.default_rng(16)
     samples = [rng.integers(0, 256, int(n)).astype(np.uint8) for n in rng.integers(1, 5000, 300)]

@@ -7,11 +7,10 @@ import math
 
 import numpy as np
 import pytest
+from cubeloc.fakes.odometry import simulate_odometry
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryModel, OdometryPrior
 from scipy.spatial.transform import Rotation
-
-from fakes.odometry import simulate_odometry
-from positioning.geometry import Transform
-from positioning.tracking.odometry import OdometryBuffer, OdometryModel, OdometryPrior
 
 T0 = 1_700_000_000 * 10**9
 
@@ -130,8 +129,8 @@ def test_the_map_pose_and_the_wheels_motion_are_combined_by_their_covariances():
 def test_the_simulated_odometry_is_as_wrong_as_it_says():
     """spin_in_place's base turns on the spot (the camera 0.2 m ahead of the axis): its
     odometry turns 1 % too far plus 0.2 deg/s, and drives nearly nowhere."""
-    from fakes.odometry import mount_of
-    from fakes.trajectories import make_trajectory, trajectory_at
+    from cubeloc.fakes.odometry import mount_of
+    from cubeloc.fakes.trajectories import make_trajectory, trajectory_at
 
     xyz, quaternion = mount_of(make_trajectory("spin_in_place", 22.0)[0].T_world_camera)
     rows = simulate_odometry("spin_in_place", 22.0, Transform.from_quaternion(xyz, quaternion), noise_rad=0.0)

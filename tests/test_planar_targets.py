@@ -7,19 +7,18 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from calib.camera_info import paper_camera
-from fakes import Room, render_view
-from fakes.lenses import lens_calibration
-from fakes.planar_views import rendered_board_view, standing_board
-from positioning.detection import TagDetector
-from positioning.estimator import PoseState
-from positioning.evaluation import decoded_corners_pose
-from positioning.geometry import look_at
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import make_board
-from positioning.tracking.options import BundleOptions
-from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.fakes import Room, render_view
+from cubeloc.fakes.lenses import lens_calibration
+from cubeloc.fakes.planar_views import rendered_board_view, standing_board
+from cubeloc.positioning.detection import TagDetector
+from cubeloc.positioning.estimator import PoseState
+from cubeloc.positioning.evaluation import decoded_corners_pose
+from cubeloc.positioning.geometry import look_at
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import make_board
+from cubeloc.positioning.tracking.options import BundleOptions
+from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
 BOARD = make_board()  # 6x6 tags of 8.8 cm, 2.6 cm apart
 CENTRE = np.array([0.5 * (6 * 0.114 - 0.026), -0.5 * (6 * 0.114 - 0.026), 0.0])

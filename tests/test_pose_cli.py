@@ -8,13 +8,12 @@ import json
 import cv2
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.fakes import render_view
+from cubeloc.positioning.detection import TagDetector
+from cubeloc.positioning.range_map import camera_on_sphere
+from cubeloc.positioning.target import default_cube_yaml
 from PIL import Image
-
-from calib.camera_info import paper_camera, write_camera_info
-from fakes import render_view
-from positioning.detection import TagDetector
-from positioning.range_map import camera_on_sphere
-from positioning.target import default_cube_yaml
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +149,7 @@ def test_a_reader_that_stops_early_gets_no_traceback(scene):
     images = [str(root / "three.png")] * 40
     for argv in (["pose", "--target", str(root / "cube.yaml"), "--calib", str(root / "camera.yaml"), *images],
                  ["doctor", "--json", "--timeout", "0.2"]):
-        done = subprocess.run(f"{sys.executable} -m daemon.cli {' '.join(argv)} | head -c 1", shell=True,
+        done = subprocess.run(f"{sys.executable} -m cubeloc.daemon.cli {' '.join(argv)} | head -c 1", shell=True,
                               capture_output=True, text=True, timeout=300)
         assert len(done.stdout) == 1, (argv[0], done.stdout)
         assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, (argv[0], done.stderr[-2000:])

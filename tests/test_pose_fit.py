@@ -5,19 +5,18 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
-from positioning.camera_model import project_normalised
-from positioning.geometry import Transform
-from positioning.tracking.map import Map
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import (
+from cubeloc.positioning.camera_model import project_normalised
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.map import Map
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.pose_fit import (
     Rays,
     deleted_residuals,
     fit_pose,
     pnp_ransac,
     pose_from_map,
 )
-from positioning.tracking.types import Tracks
+from cubeloc.positioning.tracking.types import Tracks
 
 FX = 1000.0
 SIGMA_PX = 0.2

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-
-from calib.camera_info import paper_camera
-from positioning.range_map import (
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.positioning.range_map import (
     FaceAngleSample,
     RangeCell,
     camera_on_sphere,
@@ -13,7 +12,7 @@ from positioning.range_map import (
     range_sweep,
     summary_rows,
 )
-from positioning.target import make_cube
+from cubeloc.positioning.target import make_cube
 
 
 def test_camera_on_sphere_looks_at_the_origin_from_the_given_direction():

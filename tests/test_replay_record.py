@@ -12,14 +12,13 @@ import time
 import cv2
 import numpy as np
 import pytest
-
-from daemon.cameras import make_camera
-from drivers.aravis_camera import AravisCamera
-from drivers.base import CameraSettings, EndOfStream, FrameTimeout
-from drivers.fake_gige import GvFake
-from drivers.recorder import record_sequence
-from drivers.replay import ReplayCamera, parse_replay_argument
-from drivers.sequence import SequenceWriter, camera_dir, read_image, read_sequence_index
+from cubeloc.daemon.cameras import make_camera
+from cubeloc.drivers.aravis_camera import AravisCamera
+from cubeloc.drivers.base import CameraSettings, EndOfStream, FrameTimeout
+from cubeloc.drivers.fake_gige import GvFake
+from cubeloc.drivers.recorder import record_sequence
+from cubeloc.drivers.replay import ReplayCamera, parse_replay_argument
+from cubeloc.drivers.sequence import SequenceWriter, camera_dir, read_image, read_sequence_index
 
 
 @pytest.fixture(autouse=True)
@@ -125,7 +124,7 @@ def wait_for_rows(csv_path, rows, timeout_s=60):
 def test_signal_during_record_leaves_a_valid_sequence(gv_fake, tmp_path, sig):
     out = tmp_path / "seq"
     process = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "record", "--camera", f"aravis:{gv_fake.serial}",
+        [sys.executable, "-m", "cubeloc.daemon.cli", "record", "--camera", f"aravis:{gv_fake.serial}",
          "--out", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -205,9 +204,9 @@ def test_record_with_odometry_keeps_what_the_robot_sends_as_it_arrived(cli, tmp_
     import json
 
     import zenoh
+    from cubeloc.daemon.odometry_in import read_odometry_file
 
     from cubeloc.net import free_port
-    from daemon.odometry_in import read_odometry_file
 
     source = tmp_path / "source"
     image = np.full((48, 64), 7, np.uint8)

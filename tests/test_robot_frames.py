@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cubeloc.daemon.config import load_config
+from cubeloc.daemon.messages import base_pose_payload, map_odom_payload, pose_payload
+from cubeloc.positioning.estimator import PoseEstimate, PoseSource, PoseState
+from cubeloc.positioning.frames import RobotFrames, reframe_covariance
+from cubeloc.positioning.geometry import Transform, look_at
 from scipy.spatial.transform import Rotation
 
 from cubeloc.errors import ConfigError
-from daemon.config import load_config
-from daemon.messages import base_pose_payload, map_odom_payload, pose_payload
-from positioning.estimator import PoseEstimate, PoseSource, PoseState
-from positioning.frames import RobotFrames, reframe_covariance
-from positioning.geometry import Transform, look_at
 
 # A camera 0.4 m ahead of the base and 0.9 m up, looking forward and 20 deg down (optical
 # frame: z forward, x right, y down), as a hand-measured [frames.base_from_camera] would say.
@@ -115,7 +115,7 @@ def test_map_to_odom_composed_with_the_odometry_is_the_base_in_the_map_and_carri
 
 
 def test_a_step_of_map_to_odom_is_spread_over_its_time_constant_and_a_steady_value_kept():
-    from positioning.frames import SpreadCorrection
+    from cubeloc.positioning.frames import SpreadCorrection
 
     before = Transform(np.eye(3), [1.0, 2.0, 0.0])
     after = Transform(Rotation.from_euler("z", 4, degrees=True).as_matrix(), [1.1, 2.0, 0.0])  # the cube seen again

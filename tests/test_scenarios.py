@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.fakes.camera import SyntheticCamera
+from cubeloc.fakes.scenarios import TIMING, scenario_effects
+from cubeloc.fakes.trajectories import make_trajectory
+from cubeloc.positioning.target import make_cube
 from helpers import half_resolution
-
-from calib.camera_info import paper_camera
-from fakes.camera import SyntheticCamera
-from fakes.scenarios import TIMING, scenario_effects
-from fakes.trajectories import make_trajectory
-from positioning.target import make_cube
 
 CUBE = np.concatenate([tag.corners for tag in make_cube().tags])
 
@@ -134,7 +133,7 @@ def test_motion_blur_is_integrated_over_the_exposure_and_gain_steps_change_the_b
 
 
 def test_scenarios_refuse_too_short_a_run():
-    from fakes.trajectories import TrajectoryError
+    from cubeloc.fakes.trajectories import TrajectoryError
 
     for name, (_, _, minimum) in TIMING.items():
         with pytest.raises(TrajectoryError, match=name):

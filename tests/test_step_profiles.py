@@ -10,10 +10,9 @@ import cv2
 import numba
 import numpy as np
 import pytest
-
-from positioning import step_profiles
-from positioning.detection import _fit_lines
-from positioning.step_profiles import step_positions
+from cubeloc.positioning import step_profiles
+from cubeloc.positioning.detection import _fit_lines
+from cubeloc.positioning.step_profiles import step_positions
 
 DARK, BRIGHT = 30.0, 210.0
 
@@ -81,7 +80,7 @@ def test_it_runs_where_no_compiled_kernel_can_be_cached(tmp_path):
     """A read-only install without NUMBA_CACHE_DIR: compiled in the process, with a warning."""
     env = dict(os.environ, NUMBA_CACHE_LOCATOR_CLASSES="ZipCacheLocator")  # finds no folder
     code = ("import warnings, numpy as np; warnings.simplefilter('always')\n"
-            "from positioning.step_profiles import step_positions\n"
+            "from cubeloc.positioning.step_profiles import step_positions\n"
             "img = np.zeros((20, 20), np.uint8); img[:, 10:] = 200\n"
             "p, c, _ = step_positions(img, [[6.0, 5.0]], [[0.25, 0.0]], 33, [0], 1, 25.0)\n"
             "print(float(p[0]) * 0.25 + 6.0, bool(c[0]))\n")
@@ -110,12 +109,12 @@ def test_a_target_observer_has_every_kernel_ready_before_its_first_frame():
     real use: frames of both kinds (camera buffers read-only, renders writable), the full
     search with the corner refinement and the edge alignment, compile nothing more."""
     code = ("import numpy as np\n"
-            "from calib.camera_info import paper_camera\n"
-            "from fakes import render_view\n"
-            "from positioning import jit\n"
-            "from positioning.observer import TargetObserver\n"
-            "from positioning.range_map import camera_on_sphere\n"
-            "from positioning.target import make_cube\n"
+            "from cubeloc.calib.camera_info import paper_camera\n"
+            "from cubeloc.fakes import render_view\n"
+            "from cubeloc.positioning import jit\n"
+            "from cubeloc.positioning.observer import TargetObserver\n"
+            "from cubeloc.positioning.range_map import camera_on_sphere\n"
+            "from cubeloc.positioning.target import make_cube\n"
             "assert len(jit.KERNELS) >= 5 and all(k.cache_info().currsize == 0 for k, _ in jit.KERNELS)\n"
             "observer = TargetObserver(make_cube(), paper_camera())\n"
             "ready = [len(k().signatures) for k, _ in jit.KERNELS]\n"

@@ -6,15 +6,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
-from calib.camera_info import paper_camera, write_camera_info
-from daemon.cli import main
-from fakes import render_view
-from fakes.perturbed import explicit, perturbed_target
-from positioning.geometry import look_at
-from positioning.range_map import camera_on_sphere
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import default_cube_yaml, load_target, make_cube
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.daemon.cli import main
+from cubeloc.fakes import render_view
+from cubeloc.fakes.perturbed import explicit, perturbed_target
+from cubeloc.positioning.geometry import look_at
+from cubeloc.positioning.range_map import camera_on_sphere
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import default_cube_yaml, load_target, make_cube
 
 CAMERA = paper_camera()
 NOMINAL = make_cube()

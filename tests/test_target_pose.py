@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from calib.camera_info import paper_camera
-from fakes.optics import project
-from positioning.detection import TagDetection
-from positioning.geometry import Transform, look_at
-from positioning.tag_scale import check_tag_scale
-from positioning.target import make_cube
-from positioning.target_pose import (
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.fakes.optics import project
+from cubeloc.positioning.detection import TagDetection
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.tag_scale import check_tag_scale
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.target_pose import (
     PoseOptions,
     Refusal,
     count_planes,
@@ -152,7 +151,7 @@ def test_tag_scale_check_finds_a_wrong_tag_size(printed_scale):
 
 
 def test_a_small_edge_on_tag_is_weighted_down_and_refuses_only_an_uncertain_pose():
-    from positioning.range_map import camera_on_sphere
+    from cubeloc.positioning.range_map import camera_on_sphere
 
     truth = camera_on_sphere(80.0, 30.0, 4.0)  # face +x (id 0) at 81 deg, about 10 px wide
     view = corner_view(truth, [0, 1, 4], sigma_px=0.05, seed=2)

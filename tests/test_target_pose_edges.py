@@ -4,24 +4,23 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from calib.camera_info import CameraCalibration, paper_camera
-from fakes import render_view
-from fakes.optics import project
-from fakes.scene import tag_bits
-from positioning.camera_model import project_with_jacobian
-from positioning.detection import TagDetector, refine_corners
-from positioning.edge_alignment import (
+from cubeloc.calib.camera_info import CameraCalibration, paper_camera
+from cubeloc.fakes import render_view
+from cubeloc.fakes.optics import project
+from cubeloc.fakes.scene import tag_bits
+from cubeloc.positioning.camera_model import project_with_jacobian
+from cubeloc.positioning.detection import TagDetector, refine_corners
+from cubeloc.positioning.edge_alignment import (
     align_to_edges,
     edge_model,
     measure_edges,
     refine_pose_on_edges,
 )
-from positioning.geometry import Transform
-from positioning.range_map import camera_on_sphere
-from positioning.tag_bits import grid_to_world, tag_cells, tag_edges
-from positioning.target import make_cube
-from positioning.target_pose import estimate_target_pose
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.range_map import camera_on_sphere
+from cubeloc.positioning.tag_bits import grid_to_world, tag_cells, tag_edges
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.target_pose import estimate_target_pose
 
 CUBE = make_cube()
 CAMERA = paper_camera()
@@ -157,7 +156,7 @@ def test_a_motion_blurred_view_gets_a_covariance_that_covers_its_error():
     off; the tag corners' disagreement with the aligned pose scales the covariance so that
     it covers the error (before: a 0.2-0.3 mm sigma for a 6 mm error), and a sharp view
     keeps a small one."""
-    from positioning.single_frame import TargetPoseProcessor
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
 
     camera = paper_camera()
     processor = TargetPoseProcessor(make_cube(), camera)
@@ -188,7 +187,7 @@ def _nees_of_views(gammas_blurs, monkeypatch=None) -> tuple[np.ndarray, list[int
     """NEES (3 dof) of ``cubeloc pose``'s position on seeded views of the cube at 1.2-3 m,
     each rendered through (gamma, defocus px) of ``gammas_blurs`` (views without a pose
     left out); and the faces of each."""
-    from positioning.single_frame import TargetPoseProcessor
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
 
     rng = np.random.default_rng(31)
     nees, planes = [], []
@@ -211,7 +210,7 @@ def test_a_shift_of_every_edge_through_the_cameras_response_is_inside_the_covari
     (23 of 24 posed, 9 with three faces), all inside 99.7 % and median NEES 2.1; with the
     noise share alone, median 47.9 and 2 of 23 inside (bench target_nees: 98-100 % of the
     range map's 373 biased poses inside)."""
-    from positioning import edge_alignment
+    from cubeloc.positioning import edge_alignment
 
     views = [(g, b) for g in (0.8, 1.25) for b in (0.0, 0.8)] * 6
     nees, planes = _nees_of_views(views)

@@ -5,19 +5,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.fakes import render_view
+from cubeloc.fakes.optics import project
+from cubeloc.positioning import edge_alignment
+from cubeloc.positioning.detection import TagDetection, TagDetector, refine_corners
+from cubeloc.positioning.estimator import PoseState
+from cubeloc.positioning.evaluation import CHI2_3DOF_997
+from cubeloc.positioning.geometry import look_at
+from cubeloc.positioning.single_frame import TargetPoseProcessor
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.target_pose import estimate_target_pose
 from structlog.testing import capture_logs
-
-from calib.camera_info import paper_camera
-from fakes import render_view
-from fakes.optics import project
-from positioning import edge_alignment
-from positioning.detection import TagDetection, TagDetector, refine_corners
-from positioning.estimator import PoseState
-from positioning.evaluation import CHI2_3DOF_997
-from positioning.geometry import look_at
-from positioning.single_frame import TargetPoseProcessor
-from positioning.target import make_cube
-from positioning.target_pose import estimate_target_pose
 
 CUBE = make_cube()
 CAMERA = paper_camera()

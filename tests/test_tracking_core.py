@@ -12,24 +12,23 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-
-from calib.camera_info import paper_camera
-from fakes.optics import project
-from positioning.estimator import PoseSource, PoseState
-from positioning.evaluation import absolute_trajectory_error
-from positioning.geometry import Transform, look_at
-from positioning.target import make_cube
-from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
-from positioning.tracking.options import (
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.fakes.optics import project
+from cubeloc.positioning.estimator import PoseSource, PoseState
+from cubeloc.positioning.evaluation import absolute_trajectory_error
+from cubeloc.positioning.geometry import Transform, look_at
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
+from cubeloc.positioning.tracking.options import (
     AlignmentOptions,
     BundleOptions,
     InitOptions,
     TrackerOptions,
 )
-from positioning.tracking.patch_alignment import PatchAligner
-from positioning.tracking.tracker import Tracker
-from positioning.tracking.types import TargetObservation, Tracks
-from positioning.trajectory_io import StampedPose
+from cubeloc.positioning.tracking.patch_alignment import PatchAligner
+from cubeloc.positioning.tracking.tracker import Tracker
+from cubeloc.positioning.tracking.types import TargetObservation, Tracks
+from cubeloc.positioning.trajectory_io import StampedPose
 
 CAL = paper_camera()
 CUBE = make_cube()

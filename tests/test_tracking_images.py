@@ -12,21 +12,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.drivers.sequence import read_image, read_sequence_index
+from cubeloc.fakes.optics import project, undistort_pixels
+from cubeloc.fakes.room import default_room
+from cubeloc.fakes.sequence import write_synthetic_sequence
+from cubeloc.positioning.estimator import PoseSource, PoseState
+from cubeloc.positioning.evaluation import absolute_trajectory_error
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.tracking.features import KltFrontEnd
+from cubeloc.positioning.tracking.options import BundleOptions, FeatureOptions
+from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+from cubeloc.positioning.trajectory_io import StampedPose, read_tum
 from helpers import half_resolution
-
-from calib.camera_info import CameraCalibration
-from drivers.sequence import read_image, read_sequence_index
-from fakes.optics import project, undistort_pixels
-from fakes.room import default_room
-from fakes.sequence import write_synthetic_sequence
-from positioning.estimator import PoseSource, PoseState
-from positioning.evaluation import absolute_trajectory_error
-from positioning.geometry import Transform
-from positioning.target import make_cube
-from positioning.tracking.features import KltFrontEnd
-from positioning.tracking.options import BundleOptions, FeatureOptions
-from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
-from positioning.trajectory_io import StampedPose, read_tum
 
 SYNC = ProcessorOptions()
 # bundle adjustment in the frame loop (deterministic) and lighter than the daemon's

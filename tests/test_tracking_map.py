@@ -4,12 +4,11 @@ rays: which points it makes, and from which keyframes."""
 from __future__ import annotations
 
 import numpy as np
-
-from calib.camera_info import paper_camera
-from positioning.geometry import Transform
-from positioning.tracking.map import Map
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.twoview import triangulate
+from cubeloc.calib.camera_info import paper_camera
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.map import Map
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.twoview import triangulate
 
 CAL = paper_camera()
 

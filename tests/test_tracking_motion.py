@@ -6,11 +6,10 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.tracker import Tracker
+from cubeloc.positioning.tracking.types import Tracks
 from test_tracking_core import CAL, SYNC, SyntheticTracks, room_points, run, trolley_path
-
-from positioning.geometry import Transform
-from positioning.tracking.tracker import Tracker
-from positioning.tracking.types import Tracks
 
 
 def test_motion_model_predicts_where_tracks_land_after_a_skipped_frame():
@@ -83,7 +82,7 @@ def test_two_relocalisations_in_a_row_give_the_motion_model_the_turn_between_the
 def _wheels_under(poses: list[Transform], mount: Transform, as_prior: bool):
     """An odometry prior whose samples are the base's true poses under camera ``poses``
     (one a frame, 100 ms apart, and one more frame ahead)."""
-    from positioning.tracking.odometry import OdometryBuffer, OdometryPrior
+    from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryPrior
 
     buffer = OdometryBuffer()
     for k, pose in enumerate([*poses, poses[-1]]):
@@ -97,8 +96,8 @@ def test_each_map_pose_goes_through_the_wheels_relative_motion_factor():
     factor's combination of the map's pose and the wheels' motion since the last pose
     (``OdometryPrior.fuse``, measured in tests/test_odometry.py; on full-resolution
     blank_wall it took the prior from 531 to 16.8 mm RMS: python -m bench odometry)."""
-    from fakes.odometry import mount_of
-    from positioning.tracking.odometry import OdometryPrior
+    from cubeloc.fakes.odometry import mount_of
+    from cubeloc.positioning.tracking.odometry import OdometryPrior
 
     calls = []
 
@@ -130,11 +129,11 @@ def test_a_position_held_on_rays_alone_claims_no_more_than_the_robot_s_motion_al
     it. Its covariance must grow as the motion allows (the speed when the hold began, and
     1 m/s^2 of change): every held pose inside 3 sigma. The old 5 cm/s growth claimed
     0.16 m at 0.88 m off (NEES 30)."""
-    from positioning.camera_model import project_normalised
-    from positioning.tracking.hold import RayHold
-    from positioning.tracking.map import Map
-    from positioning.tracking.motion import MotionModel
-    from positioning.tracking.options import TrackerOptions
+    from cubeloc.positioning.camera_model import project_normalised
+    from cubeloc.positioning.tracking.hold import RayHold
+    from cubeloc.positioning.tracking.map import Map
+    from cubeloc.positioning.tracking.motion import MotionModel
+    from cubeloc.positioning.tracking.options import TrackerOptions
 
     fx = 800.0
     rng = np.random.default_rng(3)
@@ -170,11 +169,11 @@ def test_a_hold_is_as_unsure_as_the_pose_it_began_on():
     while the robot stands still: the held position stays where that pose put it, so it
     must claim that pose's uncertainty as well as its own. Each held pose inside 3 sigma;
     without the base pose's covariance the same poses reach a NEES of 77."""
-    from positioning.camera_model import project_normalised
-    from positioning.tracking.hold import RayHold
-    from positioning.tracking.map import Map
-    from positioning.tracking.motion import MotionModel
-    from positioning.tracking.options import TrackerOptions
+    from cubeloc.positioning.camera_model import project_normalised
+    from cubeloc.positioning.tracking.hold import RayHold
+    from cubeloc.positioning.tracking.map import Map
+    from cubeloc.positioning.tracking.motion import MotionModel
+    from cubeloc.positioning.tracking.options import TrackerOptions
 
     fx = 600.0
     rng = np.random.default_rng(5)
@@ -205,8 +204,8 @@ def test_a_velocity_is_as_unsure_as_the_poses_it_was_measured_between():
     a velocity of 48 m/s that the robot, standing still, never had. A coast on it one frame
     later lands 1.6 m off: its covariance must say so (it claimed 10 mm, a NEES of ~23000).
     Between two poses a millimetre sure, the same coast claims under a centimetre."""
-    from positioning.tracking.motion import MotionModel
-    from positioning.tracking.options import TrackerOptions
+    from cubeloc.positioning.tracking.motion import MotionModel
+    from cubeloc.positioning.tracking.options import TrackerOptions
 
     frame_ns = 33_000_000
     motion = MotionModel(TrackerOptions())

@@ -5,19 +5,18 @@ bundle adjustment in the frame loop): the same frames with and without simulated
 from __future__ import annotations
 
 import numpy as np
+from cubeloc.drivers.sequence import read_image, read_sequence_index
+from cubeloc.fakes.odometry import mount_of, simulate_odometry
+from cubeloc.fakes.sequence import write_synthetic_sequence
+from cubeloc.fakes.trajectories import make_trajectory
+from cubeloc.positioning.estimator import PoseSource, PoseState
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import make_cube
+from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryPrior
+from cubeloc.positioning.tracking.processor import TrackingProcessor
+from cubeloc.positioning.trajectory_io import read_tum
 from helpers import half_resolution
 from test_tracking_scenarios import SYNC, score_results
-
-from drivers.sequence import read_image, read_sequence_index
-from fakes.odometry import mount_of, simulate_odometry
-from fakes.sequence import write_synthetic_sequence
-from fakes.trajectories import make_trajectory
-from positioning.estimator import PoseSource, PoseState
-from positioning.geometry import Transform
-from positioning.target import make_cube
-from positioning.tracking.odometry import OdometryBuffer, OdometryPrior
-from positioning.tracking.processor import TrackingProcessor
-from positioning.trajectory_io import read_tum
 
 SECONDS = 26.0
 

@@ -14,15 +14,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from cubeloc.daemon.replay import track_results
+from cubeloc.fakes.lenses import lens_calibration
+from cubeloc.fakes.sequence import write_synthetic_sequence
+from cubeloc.positioning.estimator import PoseSource, PoseState
+from cubeloc.positioning.evaluation import score_estimates
+from cubeloc.positioning.tracking.processor import ProcessorOptions
+from cubeloc.positioning.trajectory_io import read_tum
 from helpers import half_resolution
-
-from daemon.replay import track_results
-from fakes.lenses import lens_calibration
-from fakes.sequence import write_synthetic_sequence
-from positioning.estimator import PoseSource, PoseState
-from positioning.evaluation import score_estimates
-from positioning.tracking.processor import ProcessorOptions
-from positioning.trajectory_io import read_tum
 
 SYNC = ProcessorOptions.in_frame_loop()
 
@@ -125,8 +124,8 @@ def test_behind_a_narrow_lens_a_brisk_spin_refuses_a_pose_turned_far_from_the_pr
     turned more than max_motion_deg (5) from the prediction is refused now. Measured: 100 %,
     64 mm RMS, 160 mm max; 52 mm, 130 mm since the edge alignment's coarse first iteration
     (the drift itself is not solved: 64-76 % inside 3 sigma)."""
-    from fakes.scenarios import Effects
-    from fakes.trajectories import spin_trajectory
+    from cubeloc.fakes.scenarios import Effects
+    from cubeloc.fakes.trajectories import spin_trajectory
 
     score, results, truth = replay(tmp_path_factory, "spin_in_place", calibration=lens_calibration("narrow"),
                                    poses=spin_trajectory(90.0, 14.0, 10.0), effects=Effects(exposure_s=0.008))
@@ -179,9 +178,9 @@ def test_laps_of_the_room_close_the_loop_on_the_first(tmp_path_factory):
     each bringing the pose nearer the truth (21.0 -> 6.1 and 13.8 -> 8.3 mm); RMS
     15.0 mm, the laps 10.4 / 16.0 / 18.4 mm; without loop closure 20.5 mm, the laps 10.4 /
     21.4 / 26.3 mm (seed 1: 22.4 -> 15.8 mm; at 1280x1024, docs/benchmarks.md "laps")."""
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.target import make_cube
-    from positioning.tracking.processor import TrackingProcessor
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.target import make_cube
+    from cubeloc.positioning.tracking.processor import TrackingProcessor
 
     out = tmp_path_factory.mktemp("laps") / "laps"
     write_synthetic_sequence(out, "laps", seconds=150.0, seed=0, calibration=half_resolution())

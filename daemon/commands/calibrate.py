@@ -58,7 +58,7 @@ examples:
 
 
 def register(subparsers) -> None:
-    from calib.boards import BOARD_HELP, DEFAULT_BOARD
+    from cubeloc.calib.boards import BOARD_HELP, DEFAULT_BOARD
 
     parser = subparsers.add_parser(
         "calibrate", help="camera intrinsics and distortion from a board (live or from images)",
@@ -128,8 +128,8 @@ def expand_images(patterns: list[str]) -> list[Path]:
 
 
 def run(args) -> int:
-    from calib.boards import parse_board
-    from calib.solve import SolveOptions
+    from cubeloc.calib.boards import parse_board
+    from cubeloc.calib.solve import SolveOptions
 
     board = parse_board(args.board)
     out, views_dir, report_png = _outputs(args.out, args.force, live=args.camera is not None)
@@ -143,7 +143,7 @@ def run(args) -> int:
 
 
 def _run_images(args, board, options, out: Path, report_png: Path) -> int:
-    from calib.pipeline import calibrate_views, detect_images, views_from_detections
+    from cubeloc.calib.pipeline import calibrate_views, detect_images, views_from_detections
 
     paths = expand_images(args.images)
     print(f"detecting {board.description} in {len(paths)} images ...", flush=True)
@@ -156,9 +156,9 @@ def _run_images(args, board, options, out: Path, report_png: Path) -> int:
 
 def _write_results(run, out: Path, report_png: Path, views_note: str = "") -> None:
     import cv2
+    from cubeloc.calib.camera_info import write_camera_info
+    from cubeloc.calib.report import format_report, render_report
 
-    from calib.camera_info import write_camera_info
-    from calib.report import format_report, render_report
     from cubeloc.atomic import atomic_write_bytes
 
     for line in format_report(run.solution, run.verdict, list(run.skipped)):
@@ -171,23 +171,23 @@ def _write_results(run, out: Path, report_png: Path, views_note: str = "") -> No
 
 
 def _camera_settings(config_path: str | None):
-    from daemon.config import load_config
+    from cubeloc.daemon.config import load_config
 
     return load_config(config_path).camera.settings() if config_path else None
 
 
 def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path) -> int:
-    from calib.pipeline import ImageDetection, calibrate_views, views_from_detections
-    from calib.solve import MIN_VIEWS
-    from daemon.cameras import make_camera
-    from drivers.base import CameraBusy
+    from cubeloc.calib.pipeline import ImageDetection, calibrate_views, views_from_detections
+    from cubeloc.calib.solve import MIN_VIEWS
+    from cubeloc.daemon.cameras import make_camera
+    from cubeloc.drivers.base import CameraBusy
 
     if args.min_views < MIN_VIEWS or args.max_views < args.min_views:
         raise InputFileError(f"--min-views {args.min_views} / --max-views {args.max_views}: need {MIN_VIEWS} <= min <= max")
     camera = make_camera(args.camera, _camera_settings(args.config))
     view = None
     if args.foxglove:  # an address in use or not ours: exit 2 before the camera opens
-        from daemon.calibration_view import CalibrationView
+        from cubeloc.daemon.calibration_view import CalibrationView
 
         view = CalibrationView(args.foxglove)
     stop = threading.Event()
@@ -234,9 +234,9 @@ def _capture_views(camera, board, args, stop: threading.Event, view=None) -> tup
     Returns ([(name, image, detection)], why capture ended). On a terminal the status
     line is rewritten in place (5 times a second); otherwise one line per kept view.
     """
-    from calib.coverage import CoverageTracker
-    from calib.detect import detect_board
-    from drivers.base import EndOfStream, FrameTimeout, StreamBroken
+    from cubeloc.calib.coverage import CoverageTracker
+    from cubeloc.calib.detect import detect_board
+    from cubeloc.drivers.base import EndOfStream, FrameTimeout, StreamBroken
 
     accepted: list[tuple] = []
     tracker: CoverageTracker | None = None
@@ -285,8 +285,7 @@ def _write_views(views_dir: Path, board, accepted) -> None:
     import hashlib
 
     import cv2
-
-    from calib.corners_cache import ImageRecord, save_cache
+    from cubeloc.calib.corners_cache import ImageRecord, save_cache
 
     staging = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.", dir=views_dir.parent))
     try:

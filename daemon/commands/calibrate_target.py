@@ -55,12 +55,13 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from calib.camera_info import read_camera_info
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.daemon.commands.calibrate import expand_images
+    from cubeloc.daemon.commands.pose import load_grey
+    from cubeloc.positioning.target import load_target
+    from cubeloc.positioning.target_calibration import calibrate_target, observe
+
     from cubeloc.atomic import atomic_write_text
-    from daemon.commands.calibrate import expand_images
-    from daemon.commands.pose import load_grey
-    from positioning.target import load_target
-    from positioning.target_calibration import calibrate_target, observe
 
     out = Path(args.out)
     if out.exists() and not args.force:
@@ -96,16 +97,16 @@ def place(args, out: Path) -> int:
     inverse(T_world_camera(other)) per image where each gives a pose of its own, averaged
     (rotations by their mean, translations by theirs) with its spread reported."""
     import numpy as np
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.daemon.commands.calibrate import expand_images
+    from cubeloc.daemon.commands.pose import load_grey
+    from cubeloc.daemon.config import Config, load_config
+    from cubeloc.positioning.geometry import Transform
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
+    from cubeloc.positioning.target import load_target
     from scipy.spatial.transform import Rotation
 
-    from calib.camera_info import read_camera_info
     from cubeloc.atomic import atomic_write_text
-    from daemon.commands.calibrate import expand_images
-    from daemon.commands.pose import load_grey
-    from daemon.config import Config, load_config
-    from positioning.geometry import Transform
-    from positioning.single_frame import TargetPoseProcessor
-    from positioning.target import load_target
 
     first, other = load_target(args.target), load_target(args.place)
     if set(first.ids) & set(other.ids):

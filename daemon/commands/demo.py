@@ -41,7 +41,7 @@ class _RecordingFactory:
         self.camera = None
 
     def __call__(self, source, settings):
-        from daemon.cameras import make_camera
+        from cubeloc.daemon.cameras import make_camera
 
         self.camera = make_camera(source, settings)
         return self.camera
@@ -50,7 +50,7 @@ class _RecordingFactory:
 def _warm_up(source: str) -> None:
     """Render one frame before the clock starts: the first render builds the ray grid and
     the room's textures (seconds), which would otherwise eat the start of a real-time run."""
-    from daemon.cameras import make_camera
+    from cubeloc.daemon.cameras import make_camera
 
     with make_camera(source) as camera:
         camera.start()
@@ -62,15 +62,15 @@ def run(args) -> int:
     import json
 
     import zenoh
+    from cubeloc.calib.camera_info import paper_camera, write_camera_info
+    from cubeloc.daemon.commands.echo import format_pose
+    from cubeloc.daemon.config import Config
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.daemon.preflight import prepare
+    from cubeloc.daemon.service import Daemon
+    from cubeloc.positioning.target import default_cube_yaml
 
-    from calib.camera_info import paper_camera, write_camera_info
     from cubeloc.errors import ConfigError
-    from daemon.commands.echo import format_pose
-    from daemon.config import Config
-    from daemon.logs import configure_logging
-    from daemon.preflight import prepare
-    from daemon.service import Daemon
-    from positioning.target import default_cube_yaml
 
     if not (0 < args.seconds <= 600 and 0 < args.fps <= 100):
         raise ConfigError(f"--seconds {args.seconds:g} must be in (0, 600] and --fps {args.fps:g} in (0, 100]")
@@ -145,8 +145,7 @@ def run(args) -> int:
 def summary(received: list[dict], daemon, camera, elapsed_s: float) -> str:
     """Accuracy against the synthetic camera's ground truth, and rates."""
     import numpy as np
-
-    from positioning.geometry import Transform
+    from cubeloc.positioning.geometry import Transform
 
     stats = daemon.stats
     errors_mm, angles_deg = [], []

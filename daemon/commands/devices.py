@@ -24,8 +24,8 @@ def run(args) -> int:
     import json
     import sys
 
-    from daemon.logs import configure_logging
-    from drivers.discovery import discover
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.drivers.discovery import discover
 
     configure_logging("warning", stream=sys.stderr)
 

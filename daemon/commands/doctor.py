@@ -33,7 +33,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from daemon.commands.doctor_checks import (  # noqa: F401 - FAIL, OK, WARN and the verdict are this command's API
+from cubeloc.daemon.commands.doctor_checks import (  # noqa: F401 - FAIL, OK, WARN and the verdict are this command's API
     FAIL,
     OK,
     WARN,
@@ -64,8 +64,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from cubeloc.daemon.logs import configure_logging
+
     from cubeloc.errors import ConfigError
-    from daemon.logs import configure_logging
 
     configure_logging("error", "console", stream=sys.stderr)
     if not 0 < args.timeout <= 60:
@@ -83,8 +84,9 @@ def run(args) -> int:
 
 def diagnose(config_path: str | None, include_fake: bool = False, timeout_s: float = ZENOH_TIMEOUT_S) -> list[Check]:
     """Every check, in the order a technician would go."""
+    from cubeloc.daemon.cameras import parse_source
+
     from cubeloc.errors import CubelocError
-    from daemon.cameras import parse_source
 
     config, checks = check_config(config_path)
     aravis_check, aravis_ok = check_aravis()
@@ -121,8 +123,9 @@ def diagnose(config_path: str | None, include_fake: bool = False, timeout_s: flo
 
 # -- configuration ---------------------------------------------------------------------------
 def check_config(path: str | None):
+    from cubeloc.daemon.config import DEFAULT_CONFIG_PATH, load_config
+
     from cubeloc.errors import CubelocError
-    from daemon.config import DEFAULT_CONFIG_PATH, load_config
 
     try:
         config = load_config(path)
@@ -138,7 +141,7 @@ def check_config(path: str | None):
 # -- Aravis and cameras ------------------------------------------------------------------
 def check_aravis() -> tuple[Check, bool]:
     try:
-        from drivers.aravis_camera import _aravis
+        from cubeloc.drivers.aravis_camera import _aravis
 
         Aravis, _ = _aravis()
     except (ImportError, ValueError) as exc:  # no PyGObject, or no typelib
@@ -148,7 +151,7 @@ def check_aravis() -> tuple[Check, bool]:
 
 
 def check_cameras(aravis_ok: bool, include_fake: bool, backend: str, argument: str):
-    from drivers.discovery import discover
+    from cubeloc.drivers.discovery import discover
 
     found = discover(include_fake=include_fake) if aravis_ok else None
     devices = found.devices if found is not None else []
@@ -187,9 +190,10 @@ def find_device(devices, argument: str):
 
 def probe_camera(device) -> CameraProbe:
     """Open the camera briefly (unless someone holds it): sensor size, GigE packet size."""
+    from cubeloc.drivers.aravis_camera import _aravis, camera_lock_key
+    from cubeloc.drivers.ownership import CameraLock
+
     from cubeloc.errors import CubelocError
-    from drivers.aravis_camera import _aravis, camera_lock_key
-    from drivers.ownership import CameraLock
 
     aravis_id = device.device_id.removeprefix("aravis:")
     lock = CameraLock(camera_lock_key(device))
@@ -220,7 +224,8 @@ def probe_camera(device) -> CameraProbe:
 
 # -- files -------------------------------------------------------------------------------
 def check_calibration(config, config_path: str | None, device, probe: CameraProbe | None) -> list[Check]:
-    from calib.camera_info import read_camera_info
+    from cubeloc.calib.camera_info import read_camera_info
+
     from cubeloc.errors import CubelocError
 
     path = config.positioning.calibration
@@ -260,8 +265,9 @@ def check_calibration(config, config_path: str | None, device, probe: CameraProb
 
 
 def check_target(config) -> Check:
+    from cubeloc.positioning.target import load_target
+
     from cubeloc.errors import CubelocError
-    from positioning.target import load_target
 
     path = config.positioning.target
     try:
@@ -309,9 +315,9 @@ def _port_free(endpoint: str) -> bool:
 
 def check_zenoh(config, timeout_s: float = ZENOH_TIMEOUT_S) -> list[Check]:
     import zenoh
+    from cubeloc.daemon.zenoh_session import build_zenoh_config, zenoh_error_text
 
     from cubeloc.errors import CubelocError
-    from daemon.zenoh_session import build_zenoh_config, zenoh_error_text
 
     settings = config.zenoh
     try:

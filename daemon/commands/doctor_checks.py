@@ -69,12 +69,11 @@ def check_usbfs(config, sysfs: Path = Path("/sys")) -> Check:
 
 
 def check_usb() -> list[Check]:
-    from drivers.usb import PERMISSION_FIX, SPEED_NAMES, SPEED_SUPER, is_camera
+    from cubeloc.drivers.usb import PERMISSION_FIX, SPEED_NAMES, SPEED_SUPER, is_camera
 
     try:
         import usb.core
-
-        from drivers.usb import _facts
+        from cubeloc.drivers.usb import _facts
     except ImportError:
         return [Check("usb", WARN, "pyusb is not installed: USB permissions and link speed not checked",
                       "pip install pyusb (make install)")]

@@ -21,7 +21,7 @@ NOTHING_HEARD = 1  # the exit code then
 
 
 def register(subparsers) -> None:
-    from daemon.zenoh_session import add_zenoh_arguments
+    from cubeloc.daemon.zenoh_session import add_zenoh_arguments
 
     parser = subparsers.add_parser("echo", help="print the poses and status of the cubeloc daemons on the network")
     parser.add_argument("--name", dest="daemon_name", default="*", help="only this daemon (default: all, '*')")
@@ -46,7 +46,7 @@ def format_pose(name: str, doc: dict, rate_hz: float | None) -> str:
     x, y, z = doc["position"]
     qx, qy, qz, qw = doc["orientation"]
     rate = f"{rate_hz:5.1f} Hz" if rate_hz is not None else "    - Hz"  # one pose has no rate yet
-    from daemon.messages import pose_label
+    from cubeloc.daemon.messages import pose_label
 
     state = pose_label(doc["state"], doc.get("source"))
     return (
@@ -72,11 +72,11 @@ def format_status(name: str, doc: dict) -> str:
 
 def run(args) -> int:
     import zenoh
+    from cubeloc.daemon.commands.run import load_for_command_line
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.daemon.zenoh_session import open_session
 
     from cubeloc.errors import ConfigError
-    from daemon.commands.run import load_for_command_line
-    from daemon.logs import configure_logging
-    from daemon.zenoh_session import open_session
 
     if not 0 < args.wait <= 3600:
         raise ConfigError(f"--wait {args.wait:g}: give 0 < S <= 3600 seconds")

@@ -20,8 +20,9 @@ import io
 import sys
 from pathlib import Path
 
+from cubeloc.daemon.commands import check_out
+
 from cubeloc.errors import InputFileError
-from daemon.commands import check_out
 
 
 def register(subparsers) -> None:
@@ -62,9 +63,10 @@ def _png_bytes(image, dpi: float) -> bytes:
 
 
 def run_cube(args) -> int:
+    from cubeloc.positioning import printable
+    from cubeloc.positioning.target import load_target
+
     from cubeloc.atomic import atomic_write_bytes, atomic_write_text
-    from positioning import printable
-    from positioning.target import load_target
 
     if not 72 <= args.dpi <= 2400:
         raise InputFileError(f"--dpi {args.dpi:g}: choose a printer resolution between 72 and 2400")
@@ -101,7 +103,7 @@ def run_cube(args) -> int:
 
 
 def register_board(kinds) -> None:
-    from calib.boards import BOARD_HELP, DEFAULT_BOARD
+    from cubeloc.calib.boards import BOARD_HELP, DEFAULT_BOARD
 
     parser = kinds.add_parser(
         "board", help="a calibration board for `cubeloc calibrate`: PDF (or PNG) at true scale",
@@ -116,8 +118,9 @@ def register_board(kinds) -> None:
 
 
 def run_board(args) -> int:
-    from calib.boards import parse_board
-    from calib.printable_board import board_sheet, sheet_bytes
+    from cubeloc.calib.boards import parse_board
+    from cubeloc.calib.printable_board import board_sheet, sheet_bytes
+
     from cubeloc.atomic import atomic_write_bytes
 
     out = Path(args.out)
@@ -156,8 +159,9 @@ def register_aprilgrid(kinds) -> None:
 
 
 def run_aprilgrid(args) -> int:
+    from cubeloc.positioning.target import make_aprilgrid
+
     from cubeloc.atomic import atomic_write_bytes
-    from positioning.target import make_aprilgrid
 
     if not 0.001 <= args.tag_size <= 10:
         raise InputFileError(f"--tag-size {args.tag_size:g}: give the tag edge in metres (0.001-10)")

@@ -33,8 +33,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from cubeloc.positioning.tracking.map_file import export_ply, map_summary
+
     from cubeloc.errors import InputFileError
-    from positioning.tracking.map_file import export_ply, map_summary
 
     if args.map_verb == "info":
         summary = map_summary(Path(args.map))
@@ -62,10 +63,11 @@ def run(args) -> int:
 
 
 def _prune(args) -> int:
-    from calib.camera_info import read_camera_info
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.positioning.target import load_target
+    from cubeloc.positioning.tracking.map_file import load_map, save_map
+
     from cubeloc.errors import InputFileError
-    from positioning.target import load_target
-    from positioning.tracking.map_file import load_map, save_map
 
     if args.keyframes < 2:
         raise InputFileError(f"--keyframes {args.keyframes}: at least 2")

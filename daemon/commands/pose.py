@@ -35,7 +35,7 @@ def register(subparsers) -> None:
 def load_grey(path: Path, width: int, height: int):
     """(H, W) uint8 grey image of the calibrated size (8- or 16-bit files, ``read_image``);
     InputFileError naming the file otherwise."""
-    from drivers.sequence import read_image
+    from cubeloc.drivers.sequence import read_image
 
     image = read_image(path)
     if image.shape != (height, width):
@@ -65,11 +65,11 @@ def result_line(image: str, result) -> dict:
 
 
 def run(args) -> int:
-    from calib.camera_info import read_camera_info
-    from daemon.logs import configure_logging
-    from positioning.single_frame import TargetPoseProcessor
-    from positioning.target import load_target
-    from positioning.target_pose import PoseOptions
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
+    from cubeloc.positioning.target import load_target
+    from cubeloc.positioning.target_pose import PoseOptions
 
     configure_logging("warning", "console", stream=sys.stderr)  # stdout is for the JSON lines
     target = load_target(args.target)

@@ -42,12 +42,13 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from cubeloc.daemon.cameras import make_camera
+    from cubeloc.daemon.config import load_config
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.drivers.recorder import record_sequence
+    from cubeloc.drivers.sequence import SequenceWriter, camera_dir
+
     from cubeloc.errors import ConfigError, InputFileError
-    from daemon.cameras import make_camera
-    from daemon.config import load_config
-    from daemon.logs import configure_logging
-    from drivers.recorder import record_sequence
-    from drivers.sequence import SequenceWriter, camera_dir
 
     if args.frames is not None and args.frames <= 0:
         raise ConfigError(f"--frames {args.frames}: expected a positive number of frames")
@@ -103,8 +104,8 @@ def run(args) -> int:
 def _odometry_in(config):
     """The wheel odometry that ``[odometry]`` names, kept as it arrives (an ``OdometryLog``,
     with the Zenoh key it listens on as ``key``), while the recording runs."""
-    from daemon.odometry_in import OdometryInput, OdometryLog
-    from daemon.zenoh_session import open_session
+    from cubeloc.daemon.odometry_in import OdometryInput, OdometryLog
+    from cubeloc.daemon.zenoh_session import open_session
 
     kept = OdometryLog(config.frames.odom_frame, config.frames.base_frame, capacity=1,
                        stale_s=config.odometry.stale_s)
@@ -125,7 +126,7 @@ class _Writers:
         self.sequence, self.mcap, self.frames = sequence, mcap, 0
 
     def write(self, stamp_ns: int, image) -> None:
-        from positioning.estimator import FrameResult
+        from cubeloc.positioning.estimator import FrameResult
 
         if self.sequence is not None:
             self.sequence.write(stamp_ns, image)
@@ -137,9 +138,10 @@ class _Writers:
 def _mcap(path: Path, config):
     """The MCAP recording, with the config's calibration where it can be read (for the
     Image panel's overlay); a recording needs no target."""
-    from calib.camera_info import read_camera_info
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.daemon.viewer import McapRecording
+
     from cubeloc.errors import CubelocError
-    from daemon.viewer import McapRecording
 
     try:
         calibration = read_camera_info(config.positioning.calibration)

@@ -12,7 +12,7 @@ import threading
 
 
 def register(subparsers) -> None:
-    from daemon.zenoh_session import add_zenoh_arguments
+    from cubeloc.daemon.zenoh_session import add_zenoh_arguments
 
     parser = subparsers.add_parser(
         "run",
@@ -34,11 +34,11 @@ def register(subparsers) -> None:
 
 def load_for_command_line(args):
     """The config from ``--config`` (or the defaults), with the command-line overrides."""
+    from cubeloc.daemon.config import Config, load_config
+    from cubeloc.daemon.zenoh_session import settings_from_arguments
     from pydantic import ValidationError
 
     from cubeloc.errors import ConfigError
-    from daemon.config import Config, load_config
-    from daemon.zenoh_session import settings_from_arguments
 
     config = load_config(getattr(args, "config", None))
     # exclude_unset keeps "what the user set" apart from defaults (the Zenoh JSON5 file
@@ -61,10 +61,9 @@ def load_for_command_line(args):
 
 def run(args) -> int:
     import structlog
-
-    from daemon.logs import configure_logging
-    from daemon.preflight import prepare
-    from daemon.service import Daemon
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.daemon.preflight import prepare
+    from cubeloc.daemon.service import Daemon
 
     config = load_for_command_line(args)
     configure_logging(config.logging.level, config.logging.format)

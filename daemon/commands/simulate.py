@@ -31,7 +31,7 @@ def register(subparsers) -> None:
     parser.add_argument("--resolution", choices=("half", "full"), default="half",
                         help="with --family: 640x512 (default) or 1280x1024, the same lens")
     parser.add_argument("--out", required=True, help="sequence directory to create (must not exist or be empty)")
-    from fakes.trajectories import DEFAULT_FPS, DEFAULT_FPS_OF, DEFAULT_SECONDS
+    from cubeloc.fakes.trajectories import DEFAULT_FPS, DEFAULT_FPS_OF, DEFAULT_SECONDS
 
     lengths = ", ".join(f"{name} {seconds:g}" for name, seconds in DEFAULT_SECONDS.items())
     fast = ", ".join(f"{name} {fps:g}" for name, fps in DEFAULT_FPS_OF.items() if fps != DEFAULT_FPS)
@@ -48,7 +48,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from daemon.logs import configure_logging
+    from cubeloc.daemon.logs import configure_logging
 
     configure_logging("warning", stream=sys.stderr)  # stdout is for the one-line summary
     started = time.monotonic()
@@ -76,13 +76,13 @@ def run(args) -> int:
 
 def _simulate(args, progress):
     if args.family is not None:
-        from fakes.family import make_case, render_case
+        from cubeloc.fakes.family import make_case, render_case
 
         return render_case(make_case(args.family, args.resolution), args.out, progress)
-    from calib.camera_info import read_camera_info
-    from fakes.camera import RenderOptions
-    from fakes.sequence import write_synthetic_sequence
-    from positioning.target import load_target
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.fakes.camera import RenderOptions
+    from cubeloc.fakes.sequence import write_synthetic_sequence
+    from cubeloc.positioning.target import load_target
 
     return write_synthetic_sequence(
         args.out,

@@ -68,19 +68,19 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     import structlog
+    from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.daemon.config import Config, load_config
+    from cubeloc.daemon.logs import configure_logging
+    from cubeloc.daemon.messages import UnpublishablePose, encode, pose_payload
+    from cubeloc.daemon.preflight import odometry_prior, processor_options
+    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.positioning.evaluation import absolute_trajectory_error
+    from cubeloc.positioning.target import load_target
+    from cubeloc.positioning.tracking.processor import TrackingProcessor
+    from cubeloc.positioning.trajectory_io import StampedPose, read_tum, write_tum
 
-    from calib.camera_info import read_camera_info
     from cubeloc.atomic import atomic_write_text
     from cubeloc.errors import InputFileError
-    from daemon.config import Config, load_config
-    from daemon.logs import configure_logging
-    from daemon.messages import UnpublishablePose, encode, pose_payload
-    from daemon.preflight import odometry_prior, processor_options
-    from drivers.sequence import read_image, read_sequence_index
-    from positioning.evaluation import absolute_trajectory_error
-    from positioning.target import load_target
-    from positioning.tracking.processor import TrackingProcessor
-    from positioning.trajectory_io import StampedPose, read_tum, write_tum
 
     configure_logging("warning", stream=sys.stderr)  # stdout is for the summary
     log = structlog.get_logger()
@@ -106,13 +106,13 @@ def run(args) -> int:
     processor = TrackingProcessor(target, calibration, options,
                                   None if odometry is None else odometry_prior(config, odometry.buffer))
     if args.map:
-        from positioning.tracking.map_file import load_map
+        from cubeloc.positioning.tracking.map_file import load_map
 
         world_map, _ = load_map(Path(args.map), calibration, target)  # a bad file stops here, with one line
         processor.start_from_map(lambda: world_map)
     recording = None
     if args.mcap:
-        from daemon.viewer import McapRecording
+        from cubeloc.daemon.viewer import McapRecording
 
         recording = McapRecording(Path(args.mcap), target, calibration, config.frames.robot_frames(),
                                   config.foxglove)
@@ -159,7 +159,7 @@ def run(args) -> int:
         if recording is not None:
             recording.close()
     if args.save_map:
-        from positioning.tracking.map_file import save_map
+        from cubeloc.positioning.tracking.map_file import save_map
 
         header = save_map(Path(args.save_map), processor.tracker.map, calibration, target)
         print(f"map: {header['keyframes']} keyframes, {header['points']} points to {args.save_map}")
@@ -189,7 +189,7 @@ def run(args) -> int:
         except ValueError as exc:
             raise InputFileError(f"{groundtruth_path}: {exc}") from None
     if not args.no_plot:
-        from daemon.plots import plot_track
+        from cubeloc.daemon.plots import plot_track
 
         picture = out.with_suffix(".png")
         plot_track(picture, poses, pose_states, groundtruth, f"cubeloc track {Path(args.sequence).name}: "
@@ -209,7 +209,7 @@ class _OdometryReplay:
     """The samples of an odometry file, given to the buffer as they would have arrived."""
 
     def __init__(self, path: Path, buffer) -> None:
-        from daemon.odometry_in import read_odometry_file
+        from cubeloc.daemon.odometry_in import read_odometry_file
 
         self.buffer = buffer
         self.rows = read_odometry_file(path)  # a bad file stops here, with one line

@@ -8,8 +8,8 @@ with SciPy), ``map`` (keyframes and points), ``relocalise`` (ORB against keyfram
 ``twoview`` (normalised-coordinate geometry) and ``options`` (every tunable).
 """
 
-from positioning.tracking.initialiser import InitStatus
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+from cubeloc.positioning.tracking.initialiser import InitStatus
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
 __all__ = ["InitStatus", "ProcessorOptions", "TrackerOptions", "TrackingProcessor"]

@@ -18,13 +18,12 @@ from dataclasses import replace
 
 import numpy as np
 import structlog
-
-from positioning.camera_model import undistort
-from positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
-from positioning.geometry import Transform
-from positioning.tracking.initialiser import InitFrame, InitResult, InitStatus, out_of_view
-from positioning.tracking.map import Keyframe
-from positioning.tracking.types import TargetObservation, TrackedFrame, TrackerOutput
+from cubeloc.positioning.camera_model import undistort
+from cubeloc.positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.initialiser import InitFrame, InitResult, InitStatus, out_of_view
+from cubeloc.positioning.tracking.map import Keyframe
+from cubeloc.positioning.tracking.types import TargetObservation, TrackedFrame, TrackerOutput
 
 log = structlog.get_logger()
 

@@ -23,11 +23,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from positioning.geometry import robust_sigma
-from positioning.tracking.options import FeatureOptions
-from positioning.tracking.patch_alignment import PatchAligner
-from positioning.tracking.types import Tracks
+from cubeloc.positioning.geometry import robust_sigma
+from cubeloc.positioning.tracking.options import FeatureOptions
+from cubeloc.positioning.tracking.patch_alignment import PatchAligner
+from cubeloc.positioning.tracking.types import Tracks
 
 
 def view_at_scale(view_mask: np.ndarray, scale: int) -> np.ndarray:

@@ -24,12 +24,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from positioning.geometry import Transform, skew
-from positioning.tracking.options import FloorOptions
+from cubeloc.positioning.geometry import Transform, skew
+from cubeloc.positioning.tracking.options import FloorOptions
 
 if TYPE_CHECKING:
-    from positioning.tracking.bundle import BundleProblem
+    from cubeloc.positioning.tracking.bundle import BundleProblem
 
 
 @dataclass(frozen=True)

@@ -18,13 +18,12 @@ from __future__ import annotations
 import collections
 
 import numpy as np
-
-from positioning.geometry import Transform
-from positioning.tracking.map import Map
-from positioning.tracking.motion import Held, MotionModel
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import Rays, fit_pose
-from positioning.tracking.types import Tracks
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.map import Map
+from cubeloc.positioning.tracking.motion import Held, MotionModel
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.pose_fit import Rays, fit_pose
+from cubeloc.positioning.tracking.types import Tracks
 
 
 def position_sigma(covariance: np.ndarray | None) -> float:

@@ -27,12 +27,11 @@ import enum
 from dataclasses import dataclass, replace
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import project
-from positioning.geometry import Transform
-from positioning.tracking.options import InitOptions
-from positioning.tracking.twoview import (
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import project
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.options import InitOptions
+from cubeloc.positioning.tracking.twoview import (
     baseline_scale_var,
     rotation_compensated_parallax_deg,
     triangulate,

@@ -10,10 +10,9 @@ from dataclasses import replace
 
 import numpy as np
 import structlog
-
-from positioning.geometry import Transform
-from positioning.tracking.map import Keyframe
-from positioning.tracking.types import TrackedFrame
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.map import Keyframe
+from cubeloc.positioning.tracking.types import TrackedFrame
 
 log = structlog.get_logger()
 

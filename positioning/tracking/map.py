@@ -15,10 +15,9 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from positioning.geometry import Transform
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.twoview import baseline_scale_var, triangulate
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.twoview import baseline_scale_var, triangulate
 
 
 @dataclass

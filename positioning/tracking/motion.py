@@ -18,11 +18,10 @@ correction (``relocalised``: where the camera is, not how it moves) or too noisy
 from __future__ import annotations
 
 import numpy as np
-
-from positioning.geometry import Transform
-from positioning.tracking.odometry import OdometryPrior
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import beyond_motion
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.odometry import OdometryPrior
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.pose_fit import beyond_motion
 
 Held = tuple[Transform, np.ndarray]  # pose and its 6x6 covariance (ROS order)
 

@@ -35,9 +35,8 @@ import threading
 from dataclasses import dataclass, field
 
 import numpy as np
+from cubeloc.positioning.geometry import Transform
 from scipy.spatial.transform import Rotation
-
-from positioning.geometry import Transform
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from positioning.tracking.options import AlignmentOptions
+from cubeloc.positioning.tracking.options import AlignmentOptions
 
 
 def _grid(radius: int) -> np.ndarray:

@@ -19,11 +19,11 @@ measurements say given the map, nothing about the map's own error (the tracker a
 SYNOPSIS
 
     >>> import numpy as np
-    >>> from positioning.geometry import Transform
+    >>> from cubeloc.positioning.geometry import Transform
     >>> rng = np.random.default_rng(0)
     >>> points = rng.uniform([-2, -2, 3], [2, 2, 6], (40, 3))          # world = camera frame
     >>> truth = Transform.from_rvec_tvec(np.array([0.0, 0.05, 0.0]), np.array([0.02, 0, 0]))
-    >>> from positioning.camera_model import project_normalised
+    >>> from cubeloc.positioning.camera_model import project_normalised
     >>> xn = project_normalised(truth.inverse(), points)[0]
     >>> fit = fit_pose(Transform.identity(), points, xn, None, fx=1000.0, sigma_px=0.2)
     >>> bool(np.allclose(fit.T_world_camera.matrix(), truth.matrix(), atol=1e-6)), fit.covariance.shape
@@ -37,14 +37,13 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-
-from positioning.camera_model import project_normalised
-from positioning.geometry import Transform, robust_sigma, skew
+from cubeloc.positioning.camera_model import project_normalised
+from cubeloc.positioning.geometry import Transform, robust_sigma, skew
 
 if TYPE_CHECKING:
-    from positioning.tracking.map import Map
-    from positioning.tracking.options import TrackerOptions
-    from positioning.tracking.types import Tracks
+    from cubeloc.positioning.tracking.map import Map
+    from cubeloc.positioning.tracking.options import TrackerOptions
+    from cubeloc.positioning.tracking.types import Tracks
 
 HUBER = 2.0  # whitened units: residuals beyond 2 sigma count linearly
 CHI2_CUT = 3.03  # whitened norm of a 2-D residual: chi-square 99 % for 2 dof

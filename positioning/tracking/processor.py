@@ -23,11 +23,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import ahead_mask, outline_pixels, project_normalised
-from positioning.detection import DetectorOptions
-from positioning.estimator import (
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import ahead_mask, outline_pixels, project_normalised
+from cubeloc.positioning.detection import DetectorOptions
+from cubeloc.positioning.estimator import (
     FeatureState,
     FrameResult,
     FrameView,
@@ -35,17 +34,22 @@ from positioning.estimator import (
     PoseSource,
     PoseState,
 )
-from positioning.geometry import Transform
-from positioning.observer import TargetObserver, image_problem
-from positioning.target import Target
-from positioning.target_pose import PoseOptions, count_planes
-from positioning.tracking.features import KltFrontEnd
-from positioning.tracking.map import Map
-from positioning.tracking.odometry import OdometryPrior
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.relocalise import Relocaliser
-from positioning.tracking.tracker import Tracker
-from positioning.tracking.types import TargetObservation, TrackedFrame, TrackerOutput, Tracks
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.observer import TargetObserver, image_problem
+from cubeloc.positioning.target import Target
+from cubeloc.positioning.target_pose import PoseOptions, count_planes
+from cubeloc.positioning.tracking.features import KltFrontEnd
+from cubeloc.positioning.tracking.map import Map
+from cubeloc.positioning.tracking.odometry import OdometryPrior
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.relocalise import Relocaliser
+from cubeloc.positioning.tracking.tracker import Tracker
+from cubeloc.positioning.tracking.types import (
+    TargetObservation,
+    TrackedFrame,
+    TrackerOutput,
+    Tracks,
+)
 
 
 @dataclass(frozen=True)

@@ -49,23 +49,27 @@ from dataclasses import replace
 
 import numpy as np
 import structlog
-
-from calib.camera_info import CameraCalibration
-from positioning.camera_model import project, undistort
-from positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
-from positioning.geometry import Transform
-from positioning.tracking import bundle
-from positioning.tracking.beginning import MapBeginning
-from positioning.tracking.floor import Floor, TargetView, floor_from_views
-from positioning.tracking.hold import Drift, RayHold, position_sigma
-from positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
-from positioning.tracking.loop_closure import LoopClosure
-from positioning.tracking.map import Keyframe, Map
-from positioning.tracking.motion import MotionModel
-from positioning.tracking.odometry import OdometryPrior
-from positioning.tracking.options import TrackerOptions
-from positioning.tracking.pose_fit import pose_from_map, pose_from_target_and_map
-from positioning.tracking.types import TargetObservation, TrackedFrame, TrackerOutput, Tracks
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.positioning.camera_model import project, undistort
+from cubeloc.positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking import bundle
+from cubeloc.positioning.tracking.beginning import MapBeginning
+from cubeloc.positioning.tracking.floor import Floor, TargetView, floor_from_views
+from cubeloc.positioning.tracking.hold import Drift, RayHold, position_sigma
+from cubeloc.positioning.tracking.initialiser import InitFrame, Initialiser, InitStatus
+from cubeloc.positioning.tracking.loop_closure import LoopClosure
+from cubeloc.positioning.tracking.map import Keyframe, Map
+from cubeloc.positioning.tracking.motion import MotionModel
+from cubeloc.positioning.tracking.odometry import OdometryPrior
+from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.pose_fit import pose_from_map, pose_from_target_and_map
+from cubeloc.positioning.tracking.types import (
+    TargetObservation,
+    TrackedFrame,
+    TrackerOutput,
+    Tracks,
+)
 
 log = structlog.get_logger()
 

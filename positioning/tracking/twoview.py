@@ -11,9 +11,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from positioning.camera_model import project_normalised
-from positioning.geometry import Transform
+from cubeloc.positioning.camera_model import project_normalised
+from cubeloc.positioning.geometry import Transform
 
 
 @dataclass(frozen=True)

@@ -5,11 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from positioning.estimator import FrameResult
-from positioning.geometry import Transform
-from positioning.tracking.initialiser import InitStatus
-from positioning.tracking.map import Keyframe
+from cubeloc.positioning.estimator import FrameResult
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.tracking.initialiser import InitStatus
+from cubeloc.positioning.tracking.map import Keyframe
 
 
 @dataclass(frozen=True)
