@@ -16,7 +16,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-from cubeloc.daemon.replay import track_in_process
+from cubeloc.daemon.replay import track_sequence
 
 from bench.common import machine_line, markdown_table, renders_root
 from bench.intrinsics import SCENARIOS, SEED
@@ -45,7 +45,7 @@ def _run(root: Path, lens: str, scenario: str):
     if not (out / "groundtruth.tum").is_file():
         write_synthetic_sequence(out, scenario, seconds=SCENARIOS[scenario], seed=SEED, calibration=calibration,
                                  target=board)
-    return track_in_process(out, calibration, board)
+    return track_sequence(out, calibration, board).score(out)
 
 
 def run() -> str:

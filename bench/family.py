@@ -247,9 +247,7 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
     detail, position error and claimed standard deviation (mm), keyframes, map points,
     live tracks and how many of them have a map point, and the textured share of the view."""
     from cubeloc.calib.camera_info import read_camera_info
-    from cubeloc.drivers.sequence import read_image, read_sequence_index
-    from cubeloc.positioning.target import make_cube
-    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.daemon.replay import track_sequence
     from cubeloc.positioning.trajectory_io import read_tum
 
     calibration = read_camera_info(sequence / "camera.yaml")
@@ -258,25 +256,24 @@ def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 
     from cubeloc.fakes.family import make_case
 
     textured = make_case(described["seed"], described["resolution"]).textured
-    processor = TrackingProcessor(make_cube(), calibration, ProcessorOptions.in_frame_loop())
-    try:
-        for i, entry in enumerate(read_sequence_index(sequence)[: last]):
-            result = processor.process(read_image(entry.path), entry.stamp_ns, i)
-            if i < first or (i - first) % every:
-                continue
-            tracker, estimate = processor.tracker, result.estimate
-            error = sigma = "-"
-            if estimate is not None:
-                error = f"{1000 * np.linalg.norm(estimate.T_world_camera.translation - truth[i].T_world_camera.translation):.1f}"
-                if estimate.covariance is not None:
-                    sigma = f"{1000 * np.sqrt(np.trace(estimate.covariance[:3, :3])):.1f}"
-            ids = processor.front_end.ids
-            mapped = int(tracker.map.mapped(ids).sum())
-            print(f"{i} {result.status} [{result.detail[:48]}] err {error} sigma {sigma} kf {len(tracker.map.keyframes)} "
-                  f"points {len(tracker.map.points)} tracks {len(ids)} mapped {mapped} textured {textured[i]:.2f}",
-                  flush=True)
-    finally:
-        processor.close()
+
+    def row(frame, image, processor) -> None:
+        i, result = frame.seq, frame.result
+        if i < first or (i - first) % every:
+            return
+        tracker, estimate = processor.tracker, result.estimate
+        error = sigma = "-"
+        if estimate is not None:
+            error = f"{1000 * np.linalg.norm(estimate.T_world_camera.translation - truth[i].T_world_camera.translation):.1f}"
+            if estimate.covariance is not None:
+                sigma = f"{1000 * np.sqrt(np.trace(estimate.covariance[:3, :3])):.1f}"
+        ids = processor.front_end.ids
+        mapped = int(tracker.map.mapped(ids).sum())
+        print(f"{i} {result.status} [{result.detail[:48]}] err {error} sigma {sigma} kf {len(tracker.map.keyframes)} "
+              f"points {len(tracker.map.points)} tracks {len(ids)} mapped {mapped} textured {textured[i]:.2f}",
+              flush=True)
+
+    track_sequence(sequence, calibration, last=last, on_frame=row)
 
 
 def target_recall(sequences: list[Path], every: int = 15) -> None:

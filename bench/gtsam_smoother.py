@@ -280,20 +280,10 @@ class Smoother:
 def tracker_positions(sequence: Path, frames: int | None) -> list[np.ndarray | None]:
     """Today's tracker on the same frames (bundle adjustment in the frame loop): each frame's position."""
     from cubeloc.calib.camera_info import read_camera_info
-    from cubeloc.drivers.sequence import read_image, read_sequence_index
-    from cubeloc.positioning.target import make_cube
-    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.daemon.replay import track_sequence
 
-    processor = TrackingProcessor(make_cube(), read_camera_info(sequence / "camera.yaml"),
-                                  ProcessorOptions.in_frame_loop())
-    positions = []
-    try:
-        for i, entry in enumerate(read_sequence_index(sequence)[:frames]):
-            estimate = processor.process(read_image(entry.path), entry.stamp_ns, i).estimate
-            positions.append(None if estimate is None else estimate.T_world_camera.translation.copy())
-    finally:
-        processor.close()
-    return positions
+    run = track_sequence(sequence, read_camera_info(sequence / "camera.yaml"), last=frames)
+    return [None if e is None else e.T_world_camera.translation.copy() for e in run.estimates]
 
 
 def measure(sequence: Path, frames: int | None, options: SmootherOptions, with_tracker: bool) -> str:

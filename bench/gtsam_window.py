@@ -27,10 +27,8 @@ from bench.common import without_gtsam
 def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
     """(problem, options, fx) of the bundle adjustments the tracker ran on ``sequence``."""
     from cubeloc.calib.camera_info import read_camera_info
-    from cubeloc.drivers.sequence import read_image, read_sequence_index
-    from cubeloc.positioning.target import make_cube
+    from cubeloc.daemon.replay import track_sequence
     from cubeloc.positioning.tracking import bundle
-    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 
     kept, original = [], bundle.solve
 
@@ -39,12 +37,9 @@ def windows(sequence: Path, frames: int | None, most: int = 300) -> list:
         return original(problem, options, fx, sigma_px)
 
     bundle.solve = keeping
-    processor = TrackingProcessor(make_cube(), read_camera_info(sequence / "camera.yaml"), ProcessorOptions.in_frame_loop())
     try:
-        for i, entry in enumerate(read_sequence_index(sequence)[:frames]):
-            processor.process(read_image(entry.path), entry.stamp_ns, i)
+        track_sequence(sequence, read_camera_info(sequence / "camera.yaml"), last=frames)
     finally:
-        processor.close()
         bundle.solve = original
     return kept[:: max(1, len(kept) // most)]
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from cubeloc.daemon.replay import track_in_process
+from cubeloc.daemon.replay import track_sequence
 from cubeloc.fakes.lenses import LENSES, OTHER_LENSES, lens_calibration
 
 from bench.common import machine_line, markdown_table, renders_root
@@ -38,7 +38,7 @@ def _run(root: Path, lens: str, scenario: str):
     out = root / f"{lens}-{scenario}"
     if not (out / "groundtruth.tum").is_file():
         write_synthetic_sequence(out, scenario, seconds=SCENARIOS[scenario], seed=SEED, calibration=calibration)
-    return track_in_process(out, calibration)
+    return track_sequence(out, calibration).score(out)
 
 
 def run() -> str:

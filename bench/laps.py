@@ -39,34 +39,31 @@ def _render(root: Path, seed: int) -> Path:
 
 def _replay(sequence: Path, loop_closure: bool) -> dict:
     from cubeloc.calib.camera_info import read_camera_info
-    from cubeloc.drivers.sequence import read_image, read_sequence_index
-    from cubeloc.positioning.target import make_cube
-    from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+    from cubeloc.daemon.replay import track_sequence
+    from cubeloc.positioning.tracking.processor import ProcessorOptions
     from cubeloc.positioning.trajectory_io import read_tum
 
     calibration = read_camera_info(sequence / "camera.yaml")
     truth = read_tum(sequence / "groundtruth.tum")
     options = ProcessorOptions.in_frame_loop()
     options = dataclasses.replace(options, tracker=dataclasses.replace(options.tracker, loop_closure=loop_closure))
-    processor = TrackingProcessor(make_cube(), calibration, options)
     errors = np.full(len(truth), np.nan)
-    moved = []  # (error before, error after) of each closure, mm
-    closed = 0
-    try:
-        for i, entry in enumerate(read_sequence_index(sequence)):
-            result = processor.process(read_image(entry.path), entry.stamp_ns, i)
-            where = truth[i].T_world_camera.translation
-            if result.estimate is not None:
-                errors[i] = 1000 * np.linalg.norm(result.estimate.T_world_camera.translation - where)
-            tracker = processor.tracker
-            if tracker.loops_closed > closed:
-                closed = tracker.loops_closed
-                _, before, after = tracker.last_closure
-                moved.append((1000 * np.linalg.norm(before.translation - where),
-                              1000 * np.linalg.norm(after.translation - where)))
-        refused = processor.tracker.loops_refused
-    finally:
-        processor.close()
+    moved = []  # (error before, error after) of the last closure of each frame that closed one, mm
+    closed = [0]
+
+    def closures(frame, image, processor) -> None:
+        i, result, tracker = frame.seq, frame.result, processor.tracker
+        where = truth[i].T_world_camera.translation
+        if result.estimate is not None:
+            errors[i] = 1000 * np.linalg.norm(result.estimate.T_world_camera.translation - where)
+        if tracker.loops_closed > closed[0]:
+            closed[0] = tracker.loops_closed
+            _, before, after = tracker.last_closure
+            moved.append((1000 * np.linalg.norm(before.translation - where),
+                          1000 * np.linalg.norm(after.translation - where)))
+
+    tracker = track_sequence(sequence, calibration, options=options, on_frame=closures).tracker
+    closed, refused = closed[0], tracker.loops_refused
     seconds = np.array([(p.stamp_ns - truth[0].stamp_ns) / 1e9 for p in truth])
     laps = [float(np.sqrt(np.nanmean(errors[(seconds >= a) & (seconds < b)] ** 2)))
             for a, b in zip(LAP_SECONDS, LAP_SECONDS[1:], strict=False)]

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from cubeloc.daemon.replay import track_in_process
+from cubeloc.daemon.replay import track_sequence
 
 from bench.common import machine_line, markdown_table, renders_root
 
@@ -48,7 +48,7 @@ def _run(root: Path, camera: str, rate: float, fps: float, exposure_s: float):
     if not (out / "groundtruth.tum").is_file():
         write_synthetic_sequence(out, "spin_in_place", seed=SEED, calibration=calibration,
                                  poses=spin_trajectory(rate, 14.0, fps), effects=Effects(exposure_s=exposure_s))
-    return track_in_process(out, calibration)
+    return track_sequence(out, calibration).score(out)
 
 
 def run() -> str:

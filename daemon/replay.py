@@ -1,33 +1,140 @@
-"""A rendered or recorded sequence replayed through the tracker in this process: every
-frame in order, bundle adjustment in the frame loop (``ProcessorOptions.in_frame_loop``),
-so the same frames give the same poses. What tests, benchmarks and traces replay;
-``cubeloc track`` is the command, with the daemon's options and its outputs."""
+"""A recorded or rendered sequence (EuRoC layout) replayed through the tracker in this
+process, every frame in order: ``track_sequence``. It is what ``cubeloc track`` runs (the
+command adds its outputs: TUM, pose documents, MCAP, map, plot, ATE), and what the benchmarks
+and the tests replay. With ``ProcessorOptions.in_frame_loop()`` (the default) bundle
+adjustment runs in the frame loop, so the same frames give the same poses."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+import structlog
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.drivers.sequence import read_image, read_sequence_index
-from cubeloc.positioning.estimator import FrameResult
+from cubeloc.positioning.estimator import FrameResult, PoseEstimate
 from cubeloc.positioning.evaluation import RunScore, score_estimates
 from cubeloc.positioning.target import Target, make_cube
+from cubeloc.positioning.tracking.map import Map
 from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
+from cubeloc.positioning.tracking.tracker import Tracker
 from cubeloc.positioning.trajectory_io import read_tum
 
+from cubeloc.errors import InputFileError
 
-def track_results(sequence: Path, calibration: CameraCalibration, target: Target | None = None) -> list[FrameResult]:
-    """The tracker's ``FrameResult`` for each frame of ``sequence``, with the target's
-    model (the cube's when None) and nothing else known."""
-    processor = TrackingProcessor(target or make_cube(), calibration, ProcessorOptions.in_frame_loop())
+log = structlog.get_logger()
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """One frame of a replay: what the tracker made of it, or why it was not read
+    (``result`` None and ``dropped`` the reason)."""
+
+    seq: int
+    stamp_ns: int
+    result: FrameResult | None
+    dropped: str = ""
+
+
+@dataclass
+class TrackRun:
+    """A replay: every frame from the first replayed, in order, and the tracker after the
+    last (its map, its loop closures)."""
+
+    frames: list[TrackedFrame]
+    tracker: Tracker
+    seconds: float  # wall time of the frame loop
+
+    @property
+    def results(self) -> list[FrameResult | None]:
+        return [f.result for f in self.frames]
+
+    @property
+    def estimates(self) -> list[PoseEstimate | None]:
+        return [None if f.result is None else f.result.estimate for f in self.frames]
+
+    def score(self, sequence: Path) -> RunScore:
+        """Scored against the sequence's ground truth (``groundtruth.tum``), frame for frame
+        from the first one replayed."""
+        first = self.frames[0].seq if self.frames else 0
+        return score_estimates(read_tum(Path(sequence) / "groundtruth.tum")[first:], self.estimates)
+
+
+class OdometryReplay:
+    """Odometry samples given to ``buffer`` (an ``OdometryBuffer``) as they would have
+    arrived: ``rows`` are (arrival_ns, stamp_ns, position, orientation) in the order they
+    arrived, each given at its arrival stamp."""
+
+    def __init__(self, rows: list[tuple], buffer) -> None:
+        self.buffer = buffer
+        self.rows = rows
+        self._next = 0
+
+    @classmethod
+    def read(cls, path: Path, buffer) -> OdometryReplay:
+        """The rows of an odometry file (``cubeloc.odometry/1`` documents, one a line, as
+        ``cubeloc record --odometry`` writes them); a bad file raises ``InputFileError``."""
+        from cubeloc.daemon.odometry_in import read_odometry_file
+
+        return cls(read_odometry_file(path), buffer)
+
+    def feed(self, now_ns: int) -> None:
+        """Every sample that had arrived by ``now_ns``."""
+        while self._next < len(self.rows) and self.rows[self._next][0] <= now_ns:
+            arrival, stamp, position, orientation = self.rows[self._next]
+            self.buffer.add(stamp, position, orientation, now_ns=arrival)
+            self._next += 1
+
+
+FrameHook = Callable[[TrackedFrame, np.ndarray, TrackingProcessor], None]
+
+
+def track_sequence(sequence: Path, calibration: CameraCalibration, target: Target | None = None,
+                   options: ProcessorOptions | None = None, *, odometry_prior=None,
+                   odometry: OdometryReplay | None = None, start_map: Map | None = None,
+                   first: int = 0, last: int | None = None, strict: bool = False,
+                   on_frame: FrameHook | None = None) -> TrackRun:
+    """Replay frames ``first`` to ``last`` (exclusive; None: to the end) of ``sequence``
+    through a tracker on ``target`` (the cube when None) with ``options``
+    (``ProcessorOptions.in_frame_loop()`` when None).
+
+    - ``odometry_prior`` (``preflight.odometry_prior``) with ``odometry``, the file it reads,
+      fed up to each frame's stamp before the frame;
+    - ``start_map``: a saved map to start from, as the daemon's ``[map] file``;
+    - a frame that cannot be read, or is not the calibration's size, is dropped and counted
+      (``TrackedFrame.dropped``); with ``strict`` it stops the replay (``InputFileError``);
+    - ``on_frame(frame, image, processor)`` after each frame the tracker saw (recordings,
+      traces)."""
+    entries = read_sequence_index(sequence)
+    processor = TrackingProcessor(target or make_cube(), calibration,
+                                  options or ProcessorOptions.in_frame_loop(), odometry_prior)
+    if start_map is not None:
+        processor.start_from_map(lambda: start_map)
+    frames: list[TrackedFrame] = []
+    started = time.perf_counter()
     try:
-        return [processor.process(read_image(e.path), e.stamp_ns, i)
-                for i, e in enumerate(read_sequence_index(sequence))]
+        for seq, entry in enumerate(entries[first:last], start=first):
+            try:
+                image = read_image(entry.path)
+                if image.shape != (calibration.height, calibration.width):
+                    raise InputFileError(
+                        f"{entry.path}: image is {image.shape[1]}x{image.shape[0]} but the calibration "
+                        f"is for {calibration.width}x{calibration.height}")
+            except InputFileError as exc:
+                if strict:
+                    raise
+                log.warning("track.frame_dropped", seq=seq, error=str(exc))
+                frames.append(TrackedFrame(seq, entry.stamp_ns, None, str(exc)))
+                continue
+            if odometry is not None:
+                odometry.feed(entry.stamp_ns)
+            frame = TrackedFrame(seq, entry.stamp_ns, processor.process(image, entry.stamp_ns, seq))
+            frames.append(frame)
+            if on_frame is not None:
+                on_frame(frame, image, processor)
     finally:
         processor.close()
-
-
-def track_in_process(sequence: Path, calibration: CameraCalibration, target: Target | None = None) -> RunScore:
-    """``track_results`` scored against the sequence's ground truth (``groundtruth.tum``)."""
-    results = track_results(sequence, calibration, target)
-    return score_estimates(read_tum(sequence / "groundtruth.tum"), [r.estimate for r in results])
+    return TrackRun(frames, processor.tracker, time.perf_counter() - started)

@@ -5,7 +5,7 @@ bundle adjustment in the frame loop): the same frames with and without simulated
 from __future__ import annotations
 
 import numpy as np
-from cubeloc.drivers.sequence import read_image, read_sequence_index
+from cubeloc.daemon.replay import OdometryReplay, track_sequence
 from cubeloc.fakes.odometry import mount_of, simulate_odometry
 from cubeloc.fakes.sequence import write_synthetic_sequence
 from cubeloc.fakes.trajectories import make_trajectory
@@ -13,7 +13,6 @@ from cubeloc.positioning.estimator import PoseSource, PoseState
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.target import make_cube
 from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryPrior
-from cubeloc.positioning.tracking.processor import TrackingProcessor
 from cubeloc.positioning.trajectory_io import read_tum
 from helpers import half_resolution
 from test_tracking_scenarios import SYNC, score_results
@@ -23,19 +22,10 @@ SECONDS = 26.0
 
 def _run(sequence, truth, odometry_rows, mount):
     buffer = OdometryBuffer()
-    processor = TrackingProcessor(make_cube(), half_resolution(), SYNC,
-                                  None if odometry_rows is None else OdometryPrior(buffer, mount))
-    rows = odometry_rows or []
-    k, results = 0, []
-    try:
-        for i, entry in enumerate(read_sequence_index(sequence)):
-            while k < len(rows) and rows[k]["arrival_ns"] <= entry.stamp_ns:
-                row = rows[k]
-                buffer.add(row["stamp_ns"], row["position"], row["orientation"], now_ns=row["arrival_ns"])
-                k += 1
-            results.append(processor.process(read_image(entry.path), entry.stamp_ns, i))
-    finally:
-        processor.close()
+    rows = [(r["arrival_ns"], r["stamp_ns"], r["position"], r["orientation"]) for r in odometry_rows or []]
+    results = track_sequence(sequence, half_resolution(), make_cube(), SYNC,
+                             odometry_prior=None if odometry_rows is None else OdometryPrior(buffer, mount),
+                             odometry=OdometryReplay(rows, buffer)).results
     return score_results(results, truth), results
 
 

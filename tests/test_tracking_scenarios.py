@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from cubeloc.daemon.replay import track_results
+from cubeloc.daemon.replay import track_sequence
 from cubeloc.fakes.lenses import lens_calibration
 from cubeloc.fakes.sequence import write_synthetic_sequence
 from cubeloc.positioning.estimator import PoseSource, PoseState
@@ -35,7 +35,7 @@ def replay(tmp_path_factory, name: str, seconds: float | None = None, seed: int 
     write_synthetic_sequence(out, name, seconds=seconds, seed=seed, calibration=calibration, poses=poses,
                              effects=effects)
     truth = read_tum(out / "groundtruth.tum")
-    results = track_results(out, calibration)
+    results = track_sequence(out, calibration).results
     return score_results(results, truth), results, truth
 
 
@@ -178,28 +178,24 @@ def test_laps_of_the_room_close_the_loop_on_the_first(tmp_path_factory):
     each bringing the pose nearer the truth (21.0 -> 6.1 and 13.8 -> 8.3 mm); RMS
     15.0 mm, the laps 10.4 / 16.0 / 18.4 mm; without loop closure 20.5 mm, the laps 10.4 /
     21.4 / 26.3 mm (seed 1: 22.4 -> 15.8 mm; at 1280x1024, docs/benchmarks.md "laps")."""
-    from cubeloc.drivers.sequence import read_image, read_sequence_index
-    from cubeloc.positioning.target import make_cube
-    from cubeloc.positioning.tracking.processor import TrackingProcessor
-
     out = tmp_path_factory.mktemp("laps") / "laps"
     write_synthetic_sequence(out, "laps", seconds=150.0, seed=0, calibration=half_resolution())
     truth = read_tum(out / "groundtruth.tum")
     options = replace(SYNC, tracker=replace(SYNC.tracker, loop_closure=True))
-    processor = TrackingProcessor(make_cube(), half_resolution(), options)
-    errors, nearer, closed = [], [], 0
-    try:
-        for i, entry in enumerate(read_sequence_index(out)):
-            result = processor.process(read_image(entry.path), entry.stamp_ns, i)
-            where = truth[i].T_world_camera.translation
-            assert result.estimate is not None, (i, result.status, result.detail)
-            errors.append(np.linalg.norm(result.estimate.T_world_camera.translation - where))
-            if processor.tracker.loops_closed > closed:
-                closed = processor.tracker.loops_closed
-                _, before, after = processor.tracker.last_closure
-                nearer.append(np.linalg.norm(after.translation - where) < np.linalg.norm(before.translation - where))
-    finally:
-        processor.close()
+    errors, nearer, closed = [], [], [0]
+
+    def closures(frame, image, processor) -> None:
+        result, tracker = frame.result, processor.tracker
+        where = truth[frame.seq].T_world_camera.translation
+        assert result.estimate is not None, (frame.seq, result.status, result.detail)
+        errors.append(np.linalg.norm(result.estimate.T_world_camera.translation - where))
+        if tracker.loops_closed > closed[0]:
+            closed[0] = tracker.loops_closed
+            _, before, after = tracker.last_closure
+            nearer.append(np.linalg.norm(after.translation - where) < np.linalg.norm(before.translation - where))
+
+    track_sequence(out, half_resolution(), options=options, on_frame=closures)
+    closed = closed[0]
     errors, seconds = np.array(errors), np.arange(len(errors)) / 10.0
     last_lap = errors[(seconds >= 95.7) & (seconds < 142.0)]  # the laps end at 49.3, 95.7 and 142 s
     assert closed >= 1 and all(nearer), nearer

@@ -1,7 +1,8 @@
 """``cubeloc track --target T --calib C --sequence DIR --out OUT.tum``: the tracker offline.
 
 Replays a recorded sequence (EuRoC layout) through the same ``TrackingProcessor`` the
-daemon runs: initialisation on the target, then tracking, relocalisation and correction
+daemon runs (``daemon.replay.track_sequence``, the library function; this command adds the
+outputs): initialisation on the target, then tracking, relocalisation and correction
 by the target. Writes every frame with a pose to ``OUT.tum`` (T_world_camera, TUM
 format, readable by ``evo_ape tum``) and ``OUT.png`` (daemon/plots.py: the trajectory from above coloured
 by state, the error over time), prints a summary line per state and, when
@@ -19,7 +20,6 @@ depend on thread timing, so two runs give the same trajectory.
 from __future__ import annotations
 
 import sys
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -73,10 +73,10 @@ def run(args) -> int:
     from cubeloc.daemon.logs import configure_logging
     from cubeloc.daemon.messages import UnpublishablePose, encode, pose_payload
     from cubeloc.daemon.preflight import odometry_prior, processor_options
-    from cubeloc.drivers.sequence import read_image, read_sequence_index
+    from cubeloc.daemon.replay import OdometryReplay, track_sequence
+    from cubeloc.drivers.sequence import read_sequence_index
     from cubeloc.positioning.evaluation import absolute_trajectory_error
     from cubeloc.positioning.target import load_target
-    from cubeloc.positioning.tracking.processor import TrackingProcessor
     from cubeloc.positioning.trajectory_io import StampedPose, read_tum, write_tum
 
     from cubeloc.atomic import atomic_write_text
@@ -102,68 +102,59 @@ def run(args) -> int:
     if keyframes is not None and keyframes < 2:
         raise InputFileError(f"--map-keyframes {keyframes}: at least 2")
     options = processor_options(config, keyframes, background=bool(args.background_ba))
-    odometry = _odometry(args, config) if args.odometry else None
-    processor = TrackingProcessor(target, calibration, options,
-                                  None if odometry is None else odometry_prior(config, odometry.buffer))
+    odometry = prior = None
+    if args.odometry:
+        odometry = OdometryReplay.read(Path(args.odometry), config.odometry.buffer())  # a bad file stops here
+        prior = odometry_prior(config, odometry.buffer)
+        if not config.frames.enabled:
+            print("warning: no [frames.base_from_camera] (--config): the camera is taken for the robot's base",
+                  file=sys.stderr)
+    start_map = None
     if args.map:
         from cubeloc.positioning.tracking.map_file import load_map
 
-        world_map, _ = load_map(Path(args.map), calibration, target)  # a bad file stops here, with one line
-        processor.start_from_map(lambda: world_map)
+        start_map, _ = load_map(Path(args.map), calibration, target)  # a bad file stops here, with one line
     recording = None
     if args.mcap:
         from cubeloc.daemon.viewer import McapRecording
 
         recording = McapRecording(Path(args.mcap), target, calibration, config.frames.robot_frames(),
                                   config.foxglove)
+    try:
+        replay = track_sequence(
+            Path(args.sequence), calibration, target, options, odometry_prior=prior, odometry=odometry,
+            start_map=start_map, first=args.first, strict=args.strict,
+            on_frame=None if recording is None else
+            lambda frame, image, _: recording.frame(frame.stamp_ns, image, frame.result))
+    finally:
+        if recording is not None:
+            recording.close()
     poses: list[StampedPose] = []
     pose_states: list[str] = []
     payloads: list[str] = []
     states: Counter[str] = Counter()
     sources: Counter[str] = Counter()
-    started = time.perf_counter()
-    try:
-        for seq, entry in enumerate(entries[args.first:], start=args.first):
-            try:
-                image = read_image(entry.path)
-                if image.shape != (calibration.height, calibration.width):
-                    raise InputFileError(
-                        f"{entry.path}: image is {image.shape[1]}x{image.shape[0]} but {args.calib} is for "
-                        f"{calibration.width}x{calibration.height}"
-                    )
-            except InputFileError as exc:
-                if args.strict:
-                    raise
-                states["dropped"] += 1
-                log.warning("track.frame_dropped", seq=seq, error=str(exc))
-                continue
-            if odometry is not None:
-                odometry.feed(entry.stamp_ns)
-            result = processor.process(image, entry.stamp_ns, seq)
-            if recording is not None:
-                recording.frame(entry.stamp_ns, image, result)
-            if result.estimate is not None:
-                poses.append(StampedPose(entry.stamp_ns, result.estimate.T_world_camera))
-                pose_states.append(result.estimate.state.value)
-                states[result.estimate.state.value] += 1
-                sources[result.estimate.source.value] += 1
-                if args.poses:
-                    try:
-                        payloads.append(encode(pose_payload(seq, entry.stamp_ns, result.estimate)).decode())
-                    except UnpublishablePose as exc:  # as the daemon: such a frame publishes nothing
-                        log.warning("track.unpublishable", seq=seq, error=str(exc))
-            else:
-                states[result.status] += 1
-    finally:
-        processor.close()
-        if recording is not None:
-            recording.close()
+    for frame in replay.frames:
+        if frame.result is None:
+            states["dropped"] += 1
+        elif frame.result.estimate is None:
+            states[frame.result.status] += 1
+        else:
+            estimate = frame.result.estimate
+            poses.append(StampedPose(frame.stamp_ns, estimate.T_world_camera))
+            pose_states.append(estimate.state.value)
+            states[estimate.state.value] += 1
+            sources[estimate.source.value] += 1
+            if args.poses:
+                try:
+                    payloads.append(encode(pose_payload(frame.seq, frame.stamp_ns, estimate)).decode())
+                except UnpublishablePose as exc:  # as the daemon: such a frame publishes nothing
+                    log.warning("track.unpublishable", seq=frame.seq, error=str(exc))
     if args.save_map:
         from cubeloc.positioning.tracking.map_file import save_map
 
-        header = save_map(Path(args.save_map), processor.tracker.map, calibration, target)
+        header = save_map(Path(args.save_map), replay.tracker.map, calibration, target)
         print(f"map: {header['keyframes']} keyframes, {header['points']} points to {args.save_map}")
-    elapsed = time.perf_counter() - started
     write_tum(out, poses)
     if args.poses:
         atomic_write_text(Path(args.poses), "".join(line + "\n" for line in payloads))
@@ -175,10 +166,10 @@ def run(args) -> int:
     summary = ", ".join(f"{name} {count}" for name, count in states.most_common())
     if sources:  # what measured the poses (README, "Reading a pose": the pose's source)
         summary += "; poses from " + ", ".join(f"{name} {count}" for name, count in sources.most_common())
-    tracker = processor.tracker
+    tracker = replay.tracker
     if tracker.loops_closed or tracker.loops_refused:
         summary += f"; loops closed {tracker.loops_closed}, refused {tracker.loops_refused}"
-    replayed = len(entries) - args.first
+    replayed, elapsed = len(replay.frames), replay.seconds
     print(f"{replayed} frames in {elapsed:.1f} s ({replayed / max(elapsed, 1e-9):.1f} fps): {summary}")
     written = [str(out)] + ([args.poses] if args.poses else []) + ([args.mcap] if args.mcap else [])
     print(f"wrote {len(poses)} poses to {', '.join(written)}")
@@ -203,29 +194,3 @@ def run(args) -> int:
         print(f"ATE (no alignment, {ate.count} poses): RMS {ate.rmse_m * 1000:.2f} mm, "
               f"median {ate.median_m * 1000:.2f} mm, max {ate.max_m * 1000:.2f} mm")
     return 0
-
-
-class _OdometryReplay:
-    """The samples of an odometry file, given to the buffer as they would have arrived."""
-
-    def __init__(self, path: Path, buffer) -> None:
-        from cubeloc.daemon.odometry_in import read_odometry_file
-
-        self.buffer = buffer
-        self.rows = read_odometry_file(path)  # a bad file stops here, with one line
-        self._next = 0  # the file's order is the order they arrived in
-
-    def feed(self, now_ns: int) -> None:
-        while self._next < len(self.rows) and self.rows[self._next][0] <= now_ns:
-            arrival, stamp, position, orientation = self.rows[self._next]
-            self.buffer.add(stamp, position, orientation, now_ns=arrival)
-            self._next += 1
-
-
-def _odometry(args, config) -> _OdometryReplay:
-    """The odometry file's replay into a buffer as ``[odometry]`` makes one."""
-    replay = _OdometryReplay(Path(args.odometry), config.odometry.buffer())  # a bad file stops here, with one line
-    if not config.frames.enabled:
-        print("warning: no [frames.base_from_camera] (--config): the camera is taken for the robot's base",
-              file=sys.stderr)
-    return replay
