@@ -79,6 +79,13 @@ def update_section(name: str, title: str, body: str) -> None:
     RESULTS.write_text(text)
 
 
+def package_prefix(tree: Path) -> str:
+    """How ``tree`` names its modules: ``"cubeloc."`` in a tree that installs one package
+    (``cubeloc.daemon.cli``), ``""`` in one older than that (``daemon.cli``)."""
+    pyproject = (tree / "pyproject.toml").read_text(encoding="utf-8")
+    return "cubeloc." if '"cubeloc.daemon" = "daemon"' in pyproject else ""
+
+
 @contextlib.contextmanager
 def previous_tree(commit: str, work: Path, given: str | None = None) -> Iterator[Path | None]:
     """A checkout of ``commit`` (``git worktree`` under ``work``, removed afterwards) to run

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, markdown_table, previous_tree
+from bench.common import REPO, markdown_table, package_prefix, previous_tree
 
 TITLE = "Effective range: cubeloc and a corners-only baseline on the same frames"
 PREVIOUS_COMMIT = "d45d303"
@@ -45,13 +45,13 @@ DOCS = REPO / "docs" / "range"
 # Evaluates ``cubeloc pose`` of whichever tree is first on sys.path over the frames of an
 # index; one JSON line per view. Only the API both trees share.
 _EVALUATE = r"""
-import json, sys
+import importlib, json, sys
 import cv2, numpy as np
 cv2.setNumThreads(1)
-from cubeloc.calib.camera_info import read_camera_info
-from cubeloc.positioning.geometry import Transform
-from cubeloc.positioning.single_frame import TargetPoseProcessor
-from cubeloc.positioning.target import make_cube
+prefix = sys.argv[2]  # how the tree names its modules (bench.common.package_prefix)
+read_camera_info = importlib.import_module(prefix + "calib.camera_info").read_camera_info
+TargetPoseProcessor = importlib.import_module(prefix + "positioning.single_frame").TargetPoseProcessor
+make_cube = importlib.import_module(prefix + "positioning.target").make_cube
 index = json.load(open(sys.argv[1]))
 processors = {}
 for view in index:
@@ -179,7 +179,7 @@ def _library_side(index: list[dict]) -> list[dict]:
 
 def _cubeloc_side(tree: Path, index_file: Path) -> list[dict]:
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", _EVALUATE, str(index_file)], cwd=tree, env=env,
+    done = subprocess.run([sys.executable, "-c", _EVALUATE, str(index_file), package_prefix(tree)], cwd=tree, env=env,
                           capture_output=True, text=True, check=True)
     return [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
 

@@ -38,14 +38,14 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, machine_line, markdown_table, previous_tree
+from bench.common import REPO, machine_line, markdown_table, package_prefix, previous_tree
 from bench.tracker import _live, _options
 
 TITLE = "Tracker through robot motions: new and previous side by side"
 BASELINE_COMMIT = "9580d93"
 SCENARIOS = ("turn_after_init", "spin_in_place", "spin_in_place_fast", "spin_on_axis", "agile", "passers_by",
              "blank_wall", "long_lap", "paper", "orbit", "room_walk")
-# run cubeloc's CLI, then report the process's peak resident memory on stderr
+# run cubeloc's CLI (the module named first: a tree's own, bench.common.package_prefix), then report the process's peak resident memory on stderr
 _WRAPPER = (
     "import atexit, runpy, sys\n"
     "def _peak():\n"
@@ -53,8 +53,9 @@ _WRAPPER = (
     "        if line.startswith('VmHWM:'):\n"
     "            print('PEAK_RSS_KB', line.split()[1], file=sys.stderr)\n"
     "atexit.register(_peak)\n"
-    "sys.argv = ['cubeloc', *sys.argv[1:]]\n"
-    "runpy.run_module('cubeloc.daemon.cli', run_name='__main__')\n"
+    "module = sys.argv[1]\n"
+    "sys.argv = ['cubeloc', *sys.argv[2:]]\n"
+    "runpy.run_module(module, run_name='__main__')\n"
 )
 
 
@@ -70,7 +71,7 @@ def _render(root: Path, name: str, seed: int = 1) -> Path:
 def _track(tree: Path, sequence: Path, out: Path, poses: bool, extra: tuple[str, ...] = ()) -> dict:
     """One ``cubeloc track`` (with ``extra`` arguments) in a child process from ``tree``:
     its summary figures."""
-    args = [sys.executable, "-c", _WRAPPER, "track", "--target", str(sequence / "target.yaml"),
+    args = [sys.executable, "-c", _WRAPPER, f"{package_prefix(tree)}daemon.cli", "track", "--target", str(sequence / "target.yaml"),
             "--calib", str(sequence / "camera.yaml"), "--sequence", str(sequence), "--out", str(out), *extra]
     if poses:
         args += ["--poses", str(out.with_suffix(".jsonl"))]

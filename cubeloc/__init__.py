@@ -9,6 +9,14 @@ capture -> positioning -> Zenoh loop, daemon/).
 """
 
 from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+# In a source tree the subpackages are the folders beside this one: found here, they are this
+# tree's own, also for a second checkout run with PYTHONPATH=<tree> beside an editable
+# install of another (the benchmarks' side-by-side runs). An installed wheel has them inside.
+_TREE = Path(__file__).resolve().parent.parent
+if not (Path(__file__).parent / "positioning").is_dir() and (_TREE / "positioning" / "__init__.py").is_file():
+    __path__.append(str(_TREE))
 
 try:
     __version__ = version("cubeloc")
