@@ -2,19 +2,20 @@
 process, every frame in order: ``track_sequence``. It is what ``cubeloc track`` runs (the
 command adds its outputs: TUM, pose documents, MCAP, map, plot, ATE), and what the benchmarks
 and the tests replay. With ``ProcessorOptions.in_frame_loop()`` (the default) bundle
-adjustment runs in the frame loop, so the same frames give the same poses."""
+adjustment runs in the frame loop, so the same frames give the same poses. ``pose_images``
+is the single-frame counterpart (``cubeloc pose``): each image's target pose on its own."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import structlog
 from cubeloc.calib.camera_info import CameraCalibration
-from cubeloc.drivers.sequence import read_image, read_sequence_index
+from cubeloc.drivers.sequence import read_image_sized, read_sequence_index
 from cubeloc.positioning.estimator import FrameResult, PoseEstimate
 from cubeloc.positioning.evaluation import RunScore, score_estimates
 from cubeloc.positioning.target import Target, make_cube
@@ -61,6 +62,23 @@ class TrackRun:
         from the first one replayed."""
         first = self.frames[0].seq if self.frames else 0
         return score_estimates(read_tum(Path(sequence) / "groundtruth.tum")[first:], self.estimates)
+
+
+def pose_images(paths: list[Path], calibration: CameraCalibration, target: Target | None = None,
+                options=None) -> Iterator[tuple[Path, FrameResult]]:
+    """The target's pose from each image alone (``TargetPoseProcessor``, ``options`` a
+    ``PoseOptions``), in order: what ``cubeloc pose`` prints. Every image is read and checked
+    (``read_image_sized``) before the first is solved, so a bad file raises before anything
+    is given; each is then read again when its turn comes, so a long list is never all in
+    memory."""
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
+
+    for path in paths:
+        read_image_sized(path, calibration.width, calibration.height)
+    processor = TargetPoseProcessor(target or make_cube(), calibration, options)
+    for seq, path in enumerate(paths):
+        processor.reset()  # images are independent views
+        yield path, processor.process(read_image_sized(path, calibration.width, calibration.height), 0, seq)
 
 
 class OdometryReplay:
@@ -118,11 +136,7 @@ def track_sequence(sequence: Path, calibration: CameraCalibration, target: Targe
     try:
         for seq, entry in enumerate(entries[first:last], start=first):
             try:
-                image = read_image(entry.path)
-                if image.shape != (calibration.height, calibration.width):
-                    raise InputFileError(
-                        f"{entry.path}: image is {image.shape[1]}x{image.shape[0]} but the calibration "
-                        f"is for {calibration.width}x{calibration.height}")
+                image = read_image_sized(entry.path, calibration.width, calibration.height)
             except InputFileError as exc:
                 if strict:
                     raise

@@ -95,6 +95,16 @@ def read_image(path: Path) -> np.ndarray:
         raise InputFileError(f"{path}: expected an 8- or 16-bit image, got {image.dtype}") from None
 
 
+def read_image_sized(path: Path, width: int, height: int) -> np.ndarray:
+    """``read_image``, and an InputFileError naming the file when it is not ``width`` x
+    ``height`` (the size a calibration is for)."""
+    image = read_image(path)
+    if image.shape != (height, width):
+        raise InputFileError(
+            f"{path}: image is {image.shape[1]}x{image.shape[0]} but the calibration is for {width}x{height}")
+    return image
+
+
 class SequenceWriter:
     """Write frames into a new sequence directory, safe to interrupt at any point."""
 

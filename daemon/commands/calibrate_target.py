@@ -57,7 +57,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.commands.calibrate import expand_images
-    from cubeloc.daemon.commands.pose import load_grey
+    from cubeloc.drivers.sequence import read_image_sized
     from cubeloc.positioning.target import load_target
     from cubeloc.positioning.target_calibration import calibrate_target, observe
 
@@ -74,9 +74,9 @@ def run(args) -> int:
     calibration = read_camera_info(args.calib)
     paths = expand_images(args.images)
     for path in paths:
-        load_grey(path, calibration.width, calibration.height)  # every image checked first
+        read_image_sized(path, calibration.width, calibration.height)  # every image checked first
     print(f"detecting the tags of {args.target} in {len(paths)} images ...", flush=True)
-    views, skipped = observe(((str(p), load_grey(p, calibration.width, calibration.height)) for p in paths),
+    views, skipped = observe(((str(p), read_image_sized(p, calibration.width, calibration.height)) for p in paths),
                              nominal, calibration)
     result = calibrate_target(views, nominal, calibration, skipped)
     print(result.report())
@@ -99,8 +99,8 @@ def place(args, out: Path) -> int:
     import numpy as np
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.commands.calibrate import expand_images
-    from cubeloc.daemon.commands.pose import load_grey
     from cubeloc.daemon.config import Config, load_config
+    from cubeloc.drivers.sequence import read_image_sized
     from cubeloc.positioning.geometry import Transform
     from cubeloc.positioning.single_frame import TargetPoseProcessor
     from cubeloc.positioning.target import load_target
@@ -116,11 +116,11 @@ def place(args, out: Path) -> int:
     T_map_first = (load_config(args.config) if args.config else Config()).frames.robot_frames().T_map_target
     paths = expand_images(args.images)
     for path in paths:
-        load_grey(path, calibration.width, calibration.height)  # every image checked first
+        read_image_sized(path, calibration.width, calibration.height)  # every image checked first
     poses = {name: TargetPoseProcessor(target, calibration) for name, target in (("first", first), ("other", other))}
     relations = []
     for path in paths:
-        image = load_grey(path, calibration.width, calibration.height)
+        image = read_image_sized(path, calibration.width, calibration.height)
         found = {}
         for name, processor in poses.items():
             processor.reset()

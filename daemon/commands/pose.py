@@ -5,7 +5,8 @@ Prints one JSON object per image (interfaces.md): ``{"image", "ok": true, "posit
 "ok": false, "reason", "detail"}`` when the image gives no pose. Every image is checked
 before the first line is printed, so a bad file (not an image, empty, float, the wrong
 size for the calibration) stops the command with one line and exit 2, and nothing
-half-done is printed. Each image is solved on its own (no region prediction between them).
+half-done is printed. Each image is solved on its own (no region prediction between them):
+``daemon.replay.pose_images``, the library function; this command prints its results.
 """
 
 from __future__ import annotations
@@ -32,19 +33,6 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def load_grey(path: Path, width: int, height: int):
-    """(H, W) uint8 grey image of the calibrated size (8- or 16-bit files, ``read_image``);
-    InputFileError naming the file otherwise."""
-    from cubeloc.drivers.sequence import read_image
-
-    image = read_image(path)
-    if image.shape != (height, width):
-        raise InputFileError(
-            f"{path}: image is {image.shape[1]}x{image.shape[0]} but the calibration is for {width}x{height}"
-        )
-    return image
-
-
 def result_line(image: str, result) -> dict:
     """The JSON object for one image."""
     estimate = result.estimate
@@ -67,7 +55,7 @@ def result_line(image: str, result) -> dict:
 def run(args) -> int:
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.logs import configure_logging
-    from cubeloc.positioning.single_frame import TargetPoseProcessor
+    from cubeloc.daemon.replay import pose_images
     from cubeloc.positioning.target import load_target
     from cubeloc.positioning.target_pose import PoseOptions
 
@@ -76,13 +64,7 @@ def run(args) -> int:
     calibration = read_camera_info(args.calib)
     if not args.max_reproj_rms > 0:
         raise InputFileError(f"--max-reproj-rms {args.max_reproj_rms}: must be a positive number of pixels")
-    paths = [Path(p) for p in args.images]
-    for path in paths:
-        load_grey(path, calibration.width, calibration.height)  # every image checked before the first line
     options = PoseOptions(allow_two_faces=not args.no_two_faces, max_reproj_rms_px=args.max_reproj_rms)
-    processor = TargetPoseProcessor(target, calibration, options)
-    for seq, path in enumerate(paths):
-        processor.reset()  # images are independent views
-        result = processor.process(load_grey(path, calibration.width, calibration.height), 0, seq)
+    for path, result in pose_images([Path(p) for p in args.images], calibration, target, options):
         print(json.dumps(result_line(str(path), result)), flush=True)
     return 0
