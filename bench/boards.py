@@ -16,10 +16,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-from cubeloc.daemon.replay import track_sequence
 
 from bench.common import machine_line, markdown_table, renders_root
 from bench.intrinsics import SCENARIOS, SEED
+from cubeloc.daemon.replay import track_sequence
 
 TITLE = "The tracker on a board"
 LENSES = ("paper_half", "vga")

@@ -14,14 +14,13 @@ from __future__ import annotations
 import statistics
 import time
 
+from bench.common import markdown_table, median_seconds
 from cubeloc.calib.boards import parse_board
 from cubeloc.calib.detect import detect_board
 from cubeloc.calib.pipeline import ImageDetection, calibrate_views, views_from_detections
 from cubeloc.calib.solve import SolveOptions, View, solve
 from cubeloc.fakes.board_views import board_views, synthetic_board_camera
 from cubeloc.fakes.lenses import lens_calibration
-
-from bench.common import markdown_table, median_seconds
 
 TITLE = "Camera calibration: 25-view solve time and recovered-vs-true intrinsics"
 VIEWS = 25

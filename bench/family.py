@@ -58,9 +58,8 @@ def cached_case(root: Path, seed: int, resolution: str) -> Path:
     """The rendered sequence of family member ``seed``, rendered now if not cached or stale."""
     import shutil
 
-    from cubeloc.fakes.family import make_case, render_case
-
     from cubeloc.atomic import atomic_write_text
+    from cubeloc.fakes.family import make_case, render_case
 
     case = make_case(seed, resolution)
     out = root / resolution / f"seed-{seed}"

@@ -49,6 +49,7 @@ def run() -> str:
     import logging
 
     import structlog
+
     from cubeloc.drivers.aravis_camera import AravisCamera
     from cubeloc.drivers.base import CameraSettings
     from cubeloc.drivers.fake_gige import GvFake

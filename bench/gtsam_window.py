@@ -64,8 +64,9 @@ def robust_cost(problem, fx: float, poses_cw, points: np.ndarray, huber: float, 
 def solve_with_gtsam(problem, options, fx: float, iterations: int):
     """The window solved by GTSAM: (camera-from-world poses, points, seconds optimising, seconds in all)."""
     import gtsam
-    from cubeloc.positioning.geometry import Transform
     from gtsam.symbol_shorthand import C, L, X
+
+    from cubeloc.positioning.geometry import Transform
 
     built = time.perf_counter()
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()

@@ -20,10 +20,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from bench.common import machine_line, markdown_table, renders_root
 from cubeloc.daemon.replay import track_sequence
 from cubeloc.fakes.lenses import LENSES, OTHER_LENSES, lens_calibration
-
-from bench.common import machine_line, markdown_table, renders_root
 
 TITLE = "The tracker behind other lenses"
 # scenario: seconds rendered (the half-resolution tests' lengths)

@@ -31,8 +31,9 @@ MOUNTS = ((0.0, 0.0, 1.0, 0.0, -20.0), (0.2, 0.0, 0.6, 0.0, -10.0), (-0.3, 0.1, 
 
 def mount_transform(x, y, z, yaw_deg, pitch_deg):
     """T_base_camera: a camera looking along the base's x turned by yaw, pitched (negative: down)."""
-    from cubeloc.positioning.geometry import Transform
     from scipy.spatial.transform import Rotation
+
+    from cubeloc.positioning.geometry import Transform
 
     optical = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True)  # z ahead, x right, y down
     rotation = Rotation.from_euler("ZY", [yaw_deg, -pitch_deg], degrees=True) * optical
@@ -76,6 +77,9 @@ def placed_path(mount, room):
 
 
 def run() -> str:
+    from scipy.spatial.transform import Rotation
+
+    from bench.scenarios import _track
     from cubeloc.daemon.cli import main as cubeloc
     from cubeloc.fakes.lenses import lens_calibration
     from cubeloc.fakes.odometry import camera_on_base, wheel_odometry, write_odometry
@@ -83,9 +87,6 @@ def run() -> str:
     from cubeloc.fakes.sequence import write_synthetic_sequence
     from cubeloc.fakes.trajectories import EPOCH_NS
     from cubeloc.positioning.trajectory_io import StampedPose
-    from scipy.spatial.transform import Rotation
-
-    from bench.scenarios import _track
 
     room = default_room()
     rows = []

@@ -17,10 +17,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from cubeloc.fakes.odometry import LEVER_M, mount_of
 
 from bench.common import REPO, markdown_table, renders_root
 from bench.scenarios import _render, _score, _track
+from cubeloc.fakes.odometry import LEVER_M, mount_of
 
 TITLE = "Wheel odometry in: vision alone and vision + wheel odometry on the same frames"
 SCENARIOS = ("spin_in_place", "blank_wall", "spin_on_axis", "passers_by")

@@ -141,6 +141,7 @@ def _row_lines_rms(corners: dict[int, np.ndarray], cols: int, calibration) -> fl
 
 def real_frames() -> str:
     import cv2
+
     from cubeloc.calib.camera_info import CameraCalibration
     from cubeloc.drivers.sequence import read_image
     from cubeloc.positioning.detection import TagDetector, refine_corners
@@ -201,6 +202,7 @@ def fisheye_frames() -> str:
     saddle corners; OpenCV's aruco corners, refined by CORNER_REFINE_SUBPIX), the rows'
     straightness under it, and the fit against TUM-VI's published calibration."""
     import cv2
+
     from cubeloc.calib.boards import parse_board
     from cubeloc.calib.camera_info import CameraCalibration
     from cubeloc.calib.detect import detect_board

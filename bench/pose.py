@@ -91,11 +91,10 @@ def _full_frame(processor):
 def _baseline():
     """The range map's corners-only baseline (bench/range.py) as ``baseline(frame)``:
     AprilTag 3 at decimate 2 on the full frame, EPnP + LM on the library's corners."""
+    from bench.range import baseline_pose
     from cubeloc.calib.camera_info import paper_camera
     from cubeloc.positioning.detection import DetectorOptions, TagDetector
     from cubeloc.positioning.target import make_cube
-
-    from bench.range import baseline_pose
 
     cube, camera = make_cube(), paper_camera()
     detector = TagDetector(cube.family, DetectorOptions())  # decimate 2, the paper's

@@ -105,6 +105,7 @@ def views() -> list[dict]:
 def render_all(root: Path) -> list[dict]:
     """Render every view once into ``root`` (PNG), with an index; existing frames are kept."""
     import cv2
+
     from cubeloc.calib.camera_info import paper_camera, write_camera_info
     from cubeloc.fakes import Room, render_view
     from cubeloc.positioning.geometry import Transform
@@ -133,6 +134,7 @@ def baseline_pose(image: np.ndarray, calibration, detector, target) -> tuple[np.
     """Plain AprilTag 3 (the detector's decimation, its own corners) + EPnP + LM on all the
     target's corners found: (camera position or None, planes, tag ids)."""
     import cv2
+
     from cubeloc.positioning.target_pose import count_planes, unique_target_detections
 
     ours = unique_target_detections(detector.detect(image), target)
@@ -154,6 +156,7 @@ def baseline_pose(image: np.ndarray, calibration, detector, target) -> tuple[np.
 def _library_side(index: list[dict]) -> list[dict]:
     """The baseline's pose and the library's tags at decimate 1, 2 and 3, per view."""
     import cv2
+
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.positioning.detection import DetectorOptions, TagDetector
     from cubeloc.positioning.target import make_cube

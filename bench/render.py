@@ -11,14 +11,14 @@ import tempfile
 import time
 
 import numpy as np
+
+from bench.common import markdown_table, median_seconds
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera
 from cubeloc.fakes import make_trajectory, render_view
 from cubeloc.fakes.accuracy import measure_tag_corners
 from cubeloc.fakes.sequence import write_synthetic_sequence
 from cubeloc.positioning.geometry import look_at
 from cubeloc.positioning.target import make_cube
-
-from bench.common import markdown_table, median_seconds
 
 TITLE = "Synthetic camera: render time and corner accuracy (1280x1024)"
 FRAMES_PER_TRAJECTORY = 12

@@ -42,9 +42,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from cubeloc.positioning.geometry import quaternion_angle_deg
 
 from cubeloc.net import free_port
+from cubeloc.positioning.geometry import quaternion_angle_deg
 
 SOAK_DOC = Path(__file__).resolve().parents[1] / "docs" / "soak.md"
 WRONG_POSITION_M = 0.02
@@ -321,9 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--unplug-every", type=float, default=300.0, help="seconds between cable pulls (0: never)")
     parser.add_argument("--no-write", action="store_true", help="do not write docs/soak.md")
     args = parser.parse_args(argv)
-    from cubeloc.daemon.logs import configure_logging
-
     from cubeloc.atomic import atomic_write_text
+    from cubeloc.daemon.logs import configure_logging
 
     configure_logging("warning", "console")  # the daemon's warnings (camera lost...) only
 

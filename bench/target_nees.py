@@ -25,9 +25,9 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from cubeloc.positioning.evaluation import CHI2_3DOF_997
 
 from bench.common import markdown_table
+from cubeloc.positioning.evaluation import CHI2_3DOF_997
 
 TITLE = "Target covariance under a systematic edge bias (range map views)"
 GAMMAS = (0.8, 1.25)
@@ -52,13 +52,12 @@ def edge_shift_px(image: np.ndarray, truth, calibration, tag_ids: tuple[int, ...
 def measure(views: list[dict]) -> list[dict]:
     """One row per view and rendering: condition, planes, error and claimed sigma (mm), NEES
     (None: no pose), the measured edge shift (px)."""
+    from bench.range import other_lens
     from cubeloc.calib.camera_info import paper_camera
     from cubeloc.fakes import Room, render_view
     from cubeloc.positioning.geometry import Transform
     from cubeloc.positioning.single_frame import TargetPoseProcessor
     from cubeloc.positioning.target import make_cube
-
-    from bench.range import other_lens
 
     lenses = {"paper": paper_camera(), "other": other_lens()}
     room = Room(x_range=(-7.0, 7.0), y_range=(-7.0, 7.0), z_range=(-0.09, 6.0))  # as bench.range's

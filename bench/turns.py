@@ -19,9 +19,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from cubeloc.daemon.replay import track_sequence
-
 from bench.common import machine_line, markdown_table, renders_root
+from cubeloc.daemon.replay import track_sequence
 
 TITLE = "Brisk turns"
 SEED = 11

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import structlog
 import yaml
-from cubeloc.calib.boards import BoardSpec
-from cubeloc.calib.detect import Detection
 
 from cubeloc.atomic import atomic_write_text
+from cubeloc.calib.boards import BoardSpec
+from cubeloc.calib.detect import Detection
 
 CACHE_NAME = "corners.yaml"
 SCHEMA = "cubeloc.corners/1"

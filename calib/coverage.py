@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.boards import BoardSpec
 from cubeloc.calib.detect import Detection
 

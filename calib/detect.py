@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.boards import APRILGRID_FAMILY, BoardSpec
 
 MIN_BOARD_POINTS = 8  # a partial view (ChArUco, AprilGrid: two tags) with fewer does not constrain its pose well

@@ -17,14 +17,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+import cubeloc
 from cubeloc.calib.boards import BoardSpec
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.calib.corners_cache import ImageRecord, load_cache, save_cache
 from cubeloc.calib.detect import Detection, detect_board, diagnose_missing_board
 from cubeloc.calib.report import Verdict, judge
 from cubeloc.calib.solve import CalibrationError, Solution, SolveOptions, View, solve
-
-import cubeloc
 from cubeloc.errors import InputFileError
 from cubeloc.images import to_mono8
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.boards import BoardSpec, BoardSpecError, board_texture
 
 PAGES_M = {"A4": (0.210, 0.297), "A3": (0.297, 0.420), "A2": (0.420, 0.594), "A1": (0.594, 0.841), "A0": (0.841, 1.189)}

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.solve import Solution, parameter_names
 
 # thresholds of the verdict; "good" must pass all of them

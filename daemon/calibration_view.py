@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import foxglove
 import numpy as np
+from foxglove import channels as fc
+from foxglove import messages as fm
+
 from cubeloc.calib.coverage import CoverageTracker, Offer
 from cubeloc.calib.detect import Detection
 from cubeloc.daemon.config import FoxgloveConfig
 from cubeloc.daemon.viewer import GREEN, RED, YELLOW, ImageOut, label, rgba, serve, timestamp
-from foxglove import channels as fc
-from foxglove import messages as fm
 
 CELL_FILL = (0.1, 0.85, 0.2, 0.18)
 BAR_WIDTH, BAR_HEIGHT, BAR_GAP = 120.0, 12.0, 22.0  # pixels of the shown image

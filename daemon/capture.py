@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 import structlog
+
 from cubeloc.daemon.cameras import make_camera
 from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
 from cubeloc.daemon.messages import CameraStatus
@@ -38,7 +39,6 @@ from cubeloc.drivers.base import (
     Frame,
     FrameTimeout,
 )
-
 from cubeloc.errors import CubelocError
 
 log = structlog.get_logger()

@@ -19,13 +19,13 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from cubeloc.drivers.base import CameraSettings
-from cubeloc.positioning.frames import RobotFrames
-from cubeloc.positioning.geometry import Transform
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
+from cubeloc.drivers.base import CameraSettings
 from cubeloc.errors import ConfigError
+from cubeloc.positioning.frames import RobotFrames
+from cubeloc.positioning.geometry import Transform
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -12,6 +12,7 @@ import threading
 import time
 
 import numpy as np
+
 from cubeloc.positioning.estimator import PoseSource
 
 FPS_WINDOW_S = 3.0

@@ -18,12 +18,12 @@ import threading
 import time
 
 import structlog
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.daemon.config import MapConfig
+from cubeloc.errors import ConfigError, CubelocError
 from cubeloc.positioning.target import Target
 from cubeloc.positioning.tracking.map import Map
-
-from cubeloc.errors import ConfigError, CubelocError
 
 log = structlog.get_logger()
 

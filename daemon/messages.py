@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+
 from cubeloc.positioning.estimator import PoseEstimate
 from cubeloc.positioning.frames import RobotFrames
 from cubeloc.positioning.geometry import Transform

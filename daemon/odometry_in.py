@@ -20,6 +20,7 @@ import json
 import time
 
 import structlog
+
 from cubeloc.daemon.ros2 import ODOMETRY_TYPE, dds_type_name, typestore
 from cubeloc.positioning.tracking.odometry import OdometryBuffer
 

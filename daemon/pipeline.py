@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 
 import structlog
+
 from cubeloc.daemon.capture import CaptureThread
 from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
 from cubeloc.daemon.loop_stats import LoopStats

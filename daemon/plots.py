@@ -13,9 +13,9 @@ import io
 from pathlib import Path
 
 import numpy as np
-from cubeloc.positioning.trajectory_io import StampedPose
 
 from cubeloc.atomic import atomic_open
+from cubeloc.positioning.trajectory_io import StampedPose
 
 STATE_COLOURS = {"target": "tab:green", "tracking": "tab:blue", "relocalised": "tab:orange"}
 

@@ -13,14 +13,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import structlog
+
 from cubeloc.calib.camera_info import CameraCalibration, read_camera_info
 from cubeloc.daemon.cameras import make_camera, parse_source
 from cubeloc.daemon.config import Config
 from cubeloc.daemon.zenoh_session import build_zenoh_config
+from cubeloc.errors import ConfigError
 from cubeloc.positioning.estimator import FrameProcessor
 from cubeloc.positioning.target import Target, combine_targets, load_target
-
-from cubeloc.errors import ConfigError
 
 if TYPE_CHECKING:
     from cubeloc.positioning.target_pose import PoseOptions

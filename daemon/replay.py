@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import structlog
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.drivers.sequence import read_image_sized, read_sequence_index
+from cubeloc.errors import InputFileError
 from cubeloc.positioning.estimator import FrameResult, PoseEstimate
 from cubeloc.positioning.evaluation import RunScore, score_estimates
 from cubeloc.positioning.target import Target, make_cube
@@ -24,13 +26,11 @@ from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingPro
 from cubeloc.positioning.tracking.tracker import Tracker
 from cubeloc.positioning.trajectory_io import read_tum
 
-from cubeloc.errors import InputFileError
-
 log = structlog.get_logger()
 
 
 @dataclass(frozen=True)
-class TrackedFrame:
+class ReplayedFrame:
     """One frame of a replay: what the tracker made of it, or why it was not read
     (``result`` None and ``dropped`` the reason)."""
 
@@ -45,7 +45,7 @@ class TrackRun:
     """A replay: every frame from the first replayed, in order, and the tracker after the
     last (its map, its loop closures)."""
 
-    frames: list[TrackedFrame]
+    frames: list[ReplayedFrame]
     tracker: Tracker
     seconds: float  # wall time of the frame loop
 
@@ -61,7 +61,8 @@ class TrackRun:
         """Scored against the sequence's ground truth (``groundtruth.tum``), frame for frame
         from the first one replayed."""
         first = self.frames[0].seq if self.frames else 0
-        return score_estimates(read_tum(Path(sequence) / "groundtruth.tum")[first:], self.estimates)
+        truth = read_tum(Path(sequence) / "groundtruth.tum")[first:first + len(self.frames)]
+        return score_estimates(truth, self.estimates)
 
 
 def pose_images(paths: list[Path], calibration: CameraCalibration, target: Target | None = None,
@@ -107,7 +108,7 @@ class OdometryReplay:
             self._next += 1
 
 
-FrameHook = Callable[[TrackedFrame, np.ndarray, TrackingProcessor], None]
+FrameHook = Callable[[ReplayedFrame, np.ndarray, TrackingProcessor], None]
 
 
 def track_sequence(sequence: Path, calibration: CameraCalibration, target: Target | None = None,
@@ -123,7 +124,7 @@ def track_sequence(sequence: Path, calibration: CameraCalibration, target: Targe
       fed up to each frame's stamp before the frame;
     - ``start_map``: a saved map to start from, as the daemon's ``[map] file``;
     - a frame that cannot be read, or is not the calibration's size, is dropped and counted
-      (``TrackedFrame.dropped``); with ``strict`` it stops the replay (``InputFileError``);
+      (``ReplayedFrame.dropped``); with ``strict`` it stops the replay (``InputFileError``);
     - ``on_frame(frame, image, processor)`` after each frame the tracker saw (recordings,
       traces)."""
     entries = read_sequence_index(sequence)
@@ -131,7 +132,7 @@ def track_sequence(sequence: Path, calibration: CameraCalibration, target: Targe
                                   options or ProcessorOptions.in_frame_loop(), odometry_prior)
     if start_map is not None:
         processor.start_from_map(lambda: start_map)
-    frames: list[TrackedFrame] = []
+    frames: list[ReplayedFrame] = []
     started = time.perf_counter()
     try:
         for seq, entry in enumerate(entries[first:last], start=first):
@@ -141,11 +142,11 @@ def track_sequence(sequence: Path, calibration: CameraCalibration, target: Targe
                 if strict:
                     raise
                 log.warning("track.frame_dropped", seq=seq, error=str(exc))
-                frames.append(TrackedFrame(seq, entry.stamp_ns, None, str(exc)))
+                frames.append(ReplayedFrame(seq, entry.stamp_ns, None, str(exc)))
                 continue
             if odometry is not None:
                 odometry.feed(entry.stamp_ns)
-            frame = TrackedFrame(seq, entry.stamp_ns, processor.process(image, entry.stamp_ns, seq))
+            frame = ReplayedFrame(seq, entry.stamp_ns, processor.process(image, entry.stamp_ns, seq))
             frames.append(frame)
             if on_frame is not None:
                 on_frame(frame, image, processor)

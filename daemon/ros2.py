@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import structlog
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.daemon.messages import StatusReport
 from cubeloc.positioning.estimator import PoseEstimate, PoseSource

@@ -21,6 +21,8 @@ import time
 from collections.abc import Callable
 
 import structlog
+
+from cubeloc import __version__
 from cubeloc.daemon.cameras import make_camera
 from cubeloc.daemon.capture import CaptureThread
 from cubeloc.daemon.frame_queue import LatestFrameSlot
@@ -41,11 +43,9 @@ from cubeloc.daemon.sdnotify import SystemdNotifier
 from cubeloc.daemon.viewer import LiveViewer
 from cubeloc.daemon.zenoh_session import ZenohUnreachable, open_session
 from cubeloc.drivers.base import Camera, CameraSettings
+from cubeloc.errors import CubelocError
 from cubeloc.positioning.estimator import FrameProcessor
 from cubeloc.positioning.frames import SpreadCorrection
-
-from cubeloc import __version__
-from cubeloc.errors import CubelocError
 
 log = structlog.get_logger()
 

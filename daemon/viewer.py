@@ -40,19 +40,19 @@ import cv2
 import foxglove
 import numpy as np
 import structlog
-from cubeloc.calib.camera_info import CameraCalibration
-from cubeloc.daemon.config import FoxgloveConfig
-from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
-from cubeloc.daemon.messages import pose_label
-from cubeloc.positioning.estimator import FeatureState, FrameResult
-from cubeloc.positioning.frames import RobotFrames
-from cubeloc.positioning.geometry import Transform
-from cubeloc.positioning.target import Target
 from foxglove import channels as fc
 from foxglove import messages as fm
 from foxglove.mcap import MCAPWriteOptions
 
+from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.daemon.config import FoxgloveConfig
+from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
+from cubeloc.daemon.messages import pose_label
 from cubeloc.errors import ConfigError, InputFileError
+from cubeloc.positioning.estimator import FeatureState, FrameResult
+from cubeloc.positioning.frames import RobotFrames
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target
 
 log = structlog.get_logger()
 

@@ -18,8 +18,8 @@ import re
 from typing import TYPE_CHECKING, Any
 
 import structlog
-from cubeloc.daemon.config import ZenohConfig
 
+from cubeloc.daemon.config import ZenohConfig
 from cubeloc.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -36,6 +36,7 @@ import time
 
 import numpy as np
 import structlog
+
 from cubeloc.drivers.aravis_settings import apply_settings, read_settings
 from cubeloc.drivers.base import (
     PIXEL_BITS,
@@ -52,7 +53,6 @@ from cubeloc.drivers.clock import DeviceClockMapper
 from cubeloc.drivers.frame_accounting import FrameAccounting, Verdict
 from cubeloc.drivers.genicam import FeatureMap, probe_features
 from cubeloc.drivers.ownership import CameraLock
-
 from cubeloc.images import to_mono8
 
 log = structlog.get_logger()

@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 
 import structlog
+
 from cubeloc.drivers.base import CameraError, CameraSettings, FeatureNotSupported
 from cubeloc.drivers.genicam import FeatureMap
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import structlog
+
 from cubeloc.drivers.base import DeviceInfo
 from cubeloc.drivers.usb import list_usb_cameras
 

@@ -23,6 +23,7 @@ import tempfile
 from pathlib import Path
 
 import structlog
+
 from cubeloc.drivers.base import CameraBusy
 
 log = structlog.get_logger()

@@ -12,6 +12,7 @@ import threading
 import time
 
 import structlog
+
 from cubeloc.drivers.base import Camera, CameraBusy, CameraError, FeatureNotSupported, StreamBroken
 
 log = structlog.get_logger()

@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass
 
 import structlog
+
 from cubeloc.drivers.base import Camera, CaptureStats, EndOfStream, FrameTimeout, StreamBroken
 from cubeloc.drivers.reconnect import reopen_with_backoff
 from cubeloc.drivers.sequence import SequenceWriter

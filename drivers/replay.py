@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import structlog
+
 from cubeloc.drivers.base import (
     CameraBase,
     CameraSettings,
@@ -28,7 +29,6 @@ from cubeloc.drivers.base import (
     StreamBroken,
 )
 from cubeloc.drivers.sequence import SequenceEntry, read_image, read_sequence_index
-
 from cubeloc.errors import InputFileError
 
 log = structlog.get_logger()

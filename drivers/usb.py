@@ -21,6 +21,7 @@ import os
 from dataclasses import dataclass
 
 import structlog
+
 from cubeloc.drivers.base import DeviceInfo
 
 log = structlog.get_logger()

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.fakes.optics import project, undistort_pixels
 from cubeloc.fakes.scene import INK_BLACK, PAPER_WHITE, face_brightness, tag_bits

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.boards import BoardSpec, board_texture
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.fakes.optics import project, ray_grid

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from urllib.parse import parse_qsl
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera, read_camera_info
 from cubeloc.drivers.base import (
     CameraBase,

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+
 from cubeloc.fakes.room import Room
 
 DEG = np.pi / 180.0

@@ -34,6 +34,7 @@ import json
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.fakes.camera import RenderOptions
 from cubeloc.fakes.drive import CUBE_HALF, DEG, FreeFloor, wander

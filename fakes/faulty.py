@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from cubeloc.drivers.base import (
     Camera,
     CameraBase,

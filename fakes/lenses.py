@@ -23,6 +23,7 @@ whose real AprilGrid frame is in ``../shared/data/aprilgrid-real``.
 from __future__ import annotations
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera
 
 _PAPER = paper_camera()  # paper_half is it at 640x512

@@ -20,8 +20,9 @@ import math
 from pathlib import Path
 
 import numpy as np
-from cubeloc.positioning.geometry import Transform
 from scipy.spatial.transform import Rotation
+
+from cubeloc.positioning.geometry import Transform
 
 ODOMETRY_SCHEMA = "cubeloc.odometry/1"
 LEVER_M = 0.2  # the camera ahead of the base's axis, unless a scenario puts it elsewhere

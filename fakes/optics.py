@@ -21,6 +21,7 @@ import functools
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 
 # A fisheye's rays must stay this far inside 90 deg off-axis: (x, y, 1) grows without bound.

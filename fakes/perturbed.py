@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
 from cubeloc.positioning.target import Tag, Target
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.fakes.optics import project
 from cubeloc.fakes.render import render_view

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera
 from cubeloc.fakes.optics import ray_grid
 from cubeloc.fakes.room import Room, box_quads, default_room, room_atlas

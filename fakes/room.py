@@ -12,6 +12,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+
 from cubeloc.fakes.surfaces import Quad, TextureShader
 from cubeloc.fakes.textures import procedural_texture
 

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import cv2
+
 from cubeloc.fakes.render import render_view
 from cubeloc.fakes.trajectories import make_trajectory
 

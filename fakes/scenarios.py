@@ -42,11 +42,12 @@ import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.interpolate import CubicSpline
+
 from cubeloc.fakes.room import Box, box_quads, plain_paint
 from cubeloc.fakes.surfaces import Quad, TextureShader
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.trajectory_io import StampedPose
-from scipy.interpolate import CubicSpline
 
 DEG = np.pi / 180.0
 HEIGHT = 0.91  # camera 1 m above the floor (z = -0.09)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+
 from cubeloc.fakes.surfaces import PlainShader, Quad, TagShader
 from cubeloc.positioning.tag_bits import tag_cells
 from cubeloc.positioning.target import Tag, Target

@@ -22,17 +22,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import structlog
+
+from cubeloc.atomic import atomic_write_text, current_umask, fsync_directory
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera, write_camera_info
 from cubeloc.drivers.sequence import SequenceWriter
+from cubeloc.errors import InputFileError
 from cubeloc.fakes.camera import RenderOptions, SyntheticCamera
 from cubeloc.fakes.room import Room
 from cubeloc.fakes.scenarios import Effects, scenario_effects
 from cubeloc.fakes.trajectories import make_trajectory
 from cubeloc.positioning.target import Target, make_cube
 from cubeloc.positioning.trajectory_io import StampedPose, write_tum
-
-from cubeloc.atomic import atomic_write_text, current_umask, fsync_directory
-from cubeloc.errors import InputFileError
 
 log = structlog.get_logger()
 

@@ -18,6 +18,7 @@ from typing import Protocol
 
 import cv2
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform
 
 

@@ -29,12 +29,12 @@ velocity at the ends), or closed-form curves. Stamps start at ``EPOCH_NS``.
 from __future__ import annotations
 
 import numpy as np
+
+from cubeloc.errors import CubelocError
 from cubeloc.fakes import scenarios
 from cubeloc.fakes.scenarios import clamped_spline
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.trajectory_io import StampedPose
-
-from cubeloc.errors import CubelocError
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 DEFAULT_FPS = 10.0

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.jit import compiled, read_only

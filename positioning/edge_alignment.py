@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.camera_model import project_pose, project_with_jacobian
 from cubeloc.positioning.corner_pose import MIN_CORNER_SIGMA_PX, TargetPose

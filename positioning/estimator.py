@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform
 
 

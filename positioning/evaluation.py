@@ -15,6 +15,7 @@ import bisect
 from dataclasses import dataclass
 
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.trajectory_io import StampedPose
 

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform, skew
 
 

@@ -41,11 +41,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from cubeloc.positioning.geometry import Transform, robust_sigma
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from cubeloc.errors import CubelocError
+from cubeloc.positioning.geometry import Transform, robust_sigma
 
 MIN_TURN_DEG = 20.0  # the largest turn between two poses of a pair must reach this
 MIN_PAIRS = 8

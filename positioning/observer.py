@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import structlog
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning import jit
 from cubeloc.positioning.camera_model import ahead, project_pose

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
 from cubeloc.positioning.detection import FAMILY_CELLS
 from cubeloc.positioning.target import CUBE_FACES, Target
-from PIL import Image, ImageDraw, ImageFont
 
 MM_PER_INCH = 25.4
 PAGE_SIZES_MM = {"A4": (210.0, 297.0), "A3": (297.0, 420.0)}

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.single_frame import TargetPoseProcessor

@@ -29,6 +29,7 @@ edge alignment's time; compiled, 1188 profiles of 15 samples take ~0.2 ms.
 from __future__ import annotations
 
 import numpy as np
+
 from cubeloc.positioning.jit import compiled, read_only
 
 

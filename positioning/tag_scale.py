@@ -9,12 +9,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.camera_model import project_pose
 from cubeloc.positioning.corner_pose import TargetPose
 from cubeloc.positioning.detection import TagDetection
 from cubeloc.positioning.target import Target
-from scipy.optimize import least_squares
 
 # The tag-size consistency check warns beyond this relative disagreement.
 SCALE_WARNING_FRACTION = 0.02

@@ -8,6 +8,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.camera_model import ahead, project, undistort
 from cubeloc.positioning.detection import cells_across, library_decimate

@@ -24,7 +24,11 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
 from cubeloc.calib.camera_info import CameraCalibration
+from cubeloc.errors import InputFileError
 from cubeloc.positioning.camera_model import project_pose
 from cubeloc.positioning.detection import TagDetection, TagDetector, refine_corners
 from cubeloc.positioning.geometry import robust_sigma
@@ -34,10 +38,6 @@ from cubeloc.positioning.target_pose import (
     estimate_target_pose,
     unique_target_detections,
 )
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
-
-from cubeloc.errors import InputFileError
 
 MIN_VIEWS = 5  # usable images (two tags or more) below which nothing is solved
 MIN_TAG_VIEWS = 2  # a tag needs this many usable views to be placed

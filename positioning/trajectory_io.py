@@ -10,10 +10,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from cubeloc.positioning.geometry import Transform
 
 from cubeloc.atomic import atomic_write_text
 from cubeloc.errors import InputFileError
+from cubeloc.positioning.geometry import Transform
 
 
 @dataclass(frozen=True)

@@ -23,13 +23,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO), str(REPO / "tests")]
 
 import numpy as np  # noqa: E402
+from test_fuzz_images import TARGET, full_frames  # noqa: E402
+
 from cubeloc.calib.camera_info import paper_camera  # noqa: E402
 from cubeloc.daemon.logs import configure_logging  # noqa: E402
 from cubeloc.fakes import render_view  # noqa: E402
 from cubeloc.positioning.range_map import camera_on_sphere  # noqa: E402
 from cubeloc.positioning.single_frame import TargetPoseProcessor  # noqa: E402
 from cubeloc.positioning.tracking.processor import TrackingProcessor  # noqa: E402
-from test_fuzz_images import TARGET, full_frames  # noqa: E402
 
 
 def main() -> int:

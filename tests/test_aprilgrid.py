@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 import yaml
 from conftest import real_photographs
+
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera, write_camera_info
 from cubeloc.drivers.sequence import read_image
+from cubeloc.errors import InputFileError
 from cubeloc.fakes import render_view
 from cubeloc.fakes.planar_views import rendered_board_view
 from cubeloc.positioning.detection import TagDetector, refine_corners
@@ -19,8 +21,6 @@ from cubeloc.positioning.evaluation import decoded_corners_pose
 from cubeloc.positioning.single_frame import TargetPoseProcessor
 from cubeloc.positioning.target import load_target, make_aprilgrid, parse_target
 from cubeloc.positioning.target_pose import plane_solutions, unique_target_detections
-
-from cubeloc.errors import InputFileError
 
 KALIBR_YAML = "target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\ntagSpacing: 0.3\n"
 # EuRoC MAV cam0, from the dataset's sensor.yaml: the camera of the real EuRoC frame

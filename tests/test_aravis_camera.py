@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+
 from cubeloc.drivers.aravis_camera import AravisCamera
 from cubeloc.drivers.base import (
     CameraBusy,

@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 import structlog
 import yaml
-from cubeloc.calib.camera_info import paper_camera, read_camera_info, to_yaml, write_camera_info
-from cubeloc.daemon.cli import main
-from cubeloc.daemon.config import load_config
-from cubeloc.positioning.target import default_cube_yaml, parse_target
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from cubeloc.calib.camera_info import paper_camera, read_camera_info, to_yaml, write_camera_info
+from cubeloc.daemon.cli import main
+from cubeloc.daemon.config import load_config
 from cubeloc.errors import ConfigError, InputFileError
+from cubeloc.positioning.target import default_cube_yaml, parse_target
 
 CALIB = to_yaml(paper_camera())
 CUBE = "family: tag36h11\ncube: {side: 0.18, tag_size: 0.144, ids: [0, 1, 2, 3, 4, 5]}\n"

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.boards import parse_board
 from cubeloc.calib.detect import detect_board
 from cubeloc.calib.pipeline import ImageDetection, calibrate_views, views_from_detections

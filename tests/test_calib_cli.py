@@ -12,6 +12,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
+
 from cubeloc.calib.boards import parse_board
 from cubeloc.calib.camera_info import read_camera_info
 from cubeloc.fakes.board_views import (
@@ -19,7 +20,6 @@ from cubeloc.fakes.board_views import (
     write_board_images,
     write_board_sequence,
 )
-
 from tests.conftest import REPO, run_cli
 
 CHARUCO = "charuco:11x8:0.030:0.022:DICT_5X5_100"

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+
 from cubeloc.calib.boards import BoardSpecError, parse_board
 from cubeloc.calib.camera_info import CameraCalibration, read_camera_info, write_camera_info
 from cubeloc.calib.corners_cache import CACHE_NAME, load_cache
@@ -24,7 +25,6 @@ from cubeloc.calib.pipeline import detect_images
 from cubeloc.calib.report import judge
 from cubeloc.calib.solve import Solution, SolveOptions
 from cubeloc.fakes.board_views import board_views, synthetic_board_camera, write_board_images
-
 from tests.conftest import REPO, run_cli
 
 CAMERA = synthetic_board_camera(640, 512)

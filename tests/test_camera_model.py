@@ -6,11 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera, read_camera_info, write_camera_info
+from cubeloc.errors import InputFileError
 from cubeloc.fakes.optics import project as true_project
 from cubeloc.positioning.camera_model import distort, project, project_with_jacobian, undistort
-
-from cubeloc.errors import InputFileError
 
 CAMERA = paper_camera()
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from cubeloc.drivers.base import CaptureStats
 from cubeloc.drivers.clock import DeviceClockMapper
 from cubeloc.drivers.frame_accounting import FrameAccounting, Verdict

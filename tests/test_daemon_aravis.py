@@ -14,12 +14,12 @@ import time
 from pathlib import Path
 
 import pytest
-from cubeloc.calib.camera_info import paper_camera, write_camera_info
-from cubeloc.positioning.target import default_cube_yaml
 from gv_fake import FAKE_GV_CAMERA, GvFake
 from helpers import wait_until
 
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
 from cubeloc.net import free_port
+from cubeloc.positioning.target import default_cube_yaml
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -15,12 +15,12 @@ import threading
 from pathlib import Path
 
 import numpy as np
-from cubeloc.calib.camera_info import paper_camera, write_camera_info
-from cubeloc.fakes.trajectories import make_trajectory
-from cubeloc.positioning.target import default_cube_yaml
 from helpers import wait_until
 
+from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.fakes.trajectories import make_trajectory
 from cubeloc.net import free_port
+from cubeloc.positioning.target import default_cube_yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SECONDS, FPS = 3.0, 5.0  # the start of the paper's path: the cube in view, ~2.3 m away
@@ -117,6 +117,7 @@ def test_sighup_reloads_the_calibration_and_keeps_the_old_one_when_the_new_is_ba
     status while the daemon goes on with the old one; a good one is swapped in (the
     ``calibration`` queryable serves it) without a restart. Before: SIGHUP killed it, rc 129."""
     import zenoh
+
     from cubeloc.calib.camera_info import CameraCalibration
 
     port = free_port()

@@ -16,6 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import ROUTER, end_process, helper_process, wait_until
+from ros2_msgs import decode
+
 from cubeloc.daemon.preflight import prepare_on_loopback
 from cubeloc.daemon.sdnotify import SystemdNotifier
 from cubeloc.daemon.service import Daemon
@@ -29,11 +32,8 @@ from cubeloc.drivers.base import (
     StreamBroken,
 )
 from cubeloc.fakes import render_view
-from cubeloc.positioning.geometry import Transform, look_at
-from helpers import ROUTER, end_process, helper_process, wait_until
-from ros2_msgs import decode
-
 from cubeloc.net import free_port
+from cubeloc.positioning.geometry import Transform, look_at
 
 CAMERA_POSITION = np.array([1.2, -1.0, 0.9])
 

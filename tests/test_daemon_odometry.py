@@ -11,12 +11,12 @@ import time
 
 import numpy as np
 import pytest
-from cubeloc.daemon.ros2 import typestore
-from cubeloc.fakes import render_view
-from cubeloc.positioning.geometry import look_at
 from test_daemon_loop import Script, make_prepared, start_daemon
 
+from cubeloc.daemon.ros2 import typestore
+from cubeloc.fakes import render_view
 from cubeloc.net import free_port
+from cubeloc.positioning.geometry import look_at
 
 CAMERA_POSITION = np.array([1.2, -1.0, 0.9])
 
@@ -108,8 +108,9 @@ def test_a_tf_consumer_composes_map_to_odom_with_the_robots_odometry_into_the_ba
     publishes on base_pose within 1 mm, and no frame has two parents."""
     import threading
 
-    from cubeloc.positioning.geometry import Transform
     from ros2_msgs import decode
+
+    from cubeloc.positioning.geometry import Transform
 
     port = free_port()
     mount = {"xyz": [0.3, 0.0, 1.1], "rpy_deg": [-90, 0, -90]}

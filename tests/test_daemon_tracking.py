@@ -8,16 +8,16 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+from helpers import half_resolution
+
 from cubeloc.calib.camera_info import write_camera_info
 from cubeloc.daemon.cameras import make_camera
 from cubeloc.daemon.config import Config
 from cubeloc.daemon.preflight import prepare
 from cubeloc.daemon.sdnotify import SystemdNotifier
 from cubeloc.daemon.service import Daemon
-from cubeloc.positioning.target import default_cube_yaml
-from helpers import half_resolution
-
 from cubeloc.net import free_port
+from cubeloc.positioning.target import default_cube_yaml
 
 SECONDS, FPS = 9.0, 5.0  # the paper's path: the cube leaves the view after ~5 s
 

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera, write_camera_info
 from cubeloc.daemon.frame_queue import CapturedFrame, LatestFrameSlot
 from cubeloc.daemon.loop_stats import LoopStats

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import real_photographs
+
 from cubeloc.positioning.detection import LIBRARY_TO_UPRIGHT, DetectorOptions, TagDetector
 
 REPO = Path(__file__).resolve().parents[1]

@@ -8,8 +8,9 @@ import subprocess
 import sys
 import textwrap
 
-import cubeloc.drivers.ownership as ownership
 import pytest
+
+import cubeloc.drivers.ownership as ownership
 from cubeloc.drivers.base import CameraBusy, DeviceInfo
 from cubeloc.drivers.discovery import merge
 from cubeloc.drivers.ownership import CameraLock

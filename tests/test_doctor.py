@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 import structlog
 import zenoh
+from gv_fake import FAKE_GV_CAMERA, GvFake, gvcp_listening
+
 from cubeloc.calib.camera_info import CameraCalibration, write_camera_info
 from cubeloc.daemon.cli import main
 from cubeloc.daemon.commands.doctor import FAIL, OK, WARN, packet_size_verdict
 from cubeloc.drivers.ownership import CameraLock
-from cubeloc.positioning.target import default_cube_yaml
-from gv_fake import FAKE_GV_CAMERA, GvFake, gvcp_listening
-
 from cubeloc.net import free_port
+from cubeloc.positioning.target import default_cube_yaml
 
 NAME = "doctortest"
 REPO = Path(__file__).resolve().parents[1]

@@ -9,12 +9,12 @@ import time
 
 import numpy as np
 import pytest
+
 from cubeloc.daemon.messages import CameraStatus, StatusReport, pose_message, status_message
 from cubeloc.daemon.publisher import ZenohPublisher
+from cubeloc.net import free_port
 from cubeloc.positioning.estimator import PoseEstimate, PoseState
 from cubeloc.positioning.geometry import look_at
-
-from cubeloc.net import free_port
 
 
 @pytest.fixture

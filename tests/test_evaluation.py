@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from cubeloc.positioning.evaluation import (
     absolute_trajectory_error,
     associate,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera
 from cubeloc.fakes import Box, Room, render_view
 from cubeloc.fakes.accuracy import measure_tag_corners
@@ -190,8 +191,9 @@ def test_a_response_curve_moves_a_blurred_edge_into_the_black_side():
     """``apply_sensor(response_gamma=0.8)``: a black/white step blurred by 1.5 px is found
     at its mid-level 0.11 of the blur's sigma (0.16 px) into the black side (the white one
     grows), as a real camera's non-linear response moves it; gamma 1 leaves it in place."""
-    from cubeloc.fakes.render import apply_sensor
     from scipy.stats import norm
+
+    from cubeloc.fakes.render import apply_sensor
 
     columns = np.arange(200, dtype=np.float32) - 100.0 + 0.5  # the step at x = 0 (between columns 99 and 100)
     radiance = np.tile(np.where(columns < 0, 30 / 255, 220 / 255).astype(np.float32), (40, 1))

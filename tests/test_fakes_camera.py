@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera, read_camera_info
 from cubeloc.daemon.cameras import make_camera
 from cubeloc.drivers.base import (

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+
 from cubeloc.drivers.sequence import read_image, read_sequence_index
 from cubeloc.fakes.family import (
     BLANK_VIEW_SHARE,

@@ -13,13 +13,13 @@ import shutil
 import threading
 
 import pytest
+from helpers import wait_until
+
 from cubeloc.daemon.preflight import prepare_on_loopback
 from cubeloc.daemon.sdnotify import SystemdNotifier
 from cubeloc.daemon.service import Daemon
 from cubeloc.drivers.aravis_camera import AravisCamera
 from cubeloc.drivers.fake_gige import FAKE_GV_CAMERA, GvFake
-from helpers import wait_until
-
 from cubeloc.net import free_port
 
 pytestmark = pytest.mark.skipif(shutil.which(FAKE_GV_CAMERA) is None, reason=f"{FAKE_GV_CAMERA} not installed (aravis-tools)")

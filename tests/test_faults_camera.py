@@ -13,14 +13,14 @@ import time
 import numpy as np
 import pytest
 import structlog
+
 from cubeloc.daemon.capture import STAMP_RESTART_FRAMES
 from cubeloc.daemon.preflight import prepare_on_loopback
 from cubeloc.daemon.sdnotify import SystemdNotifier
 from cubeloc.daemon.service import Daemon
 from cubeloc.fakes.faulty import CyclingCamera, Fault, FaultyCamera, orbit_frames
-from cubeloc.positioning.geometry import quaternion_angle_deg
-
 from cubeloc.net import free_port
+from cubeloc.positioning.geometry import quaternion_angle_deg
 
 FPS = 30.0
 WRONG_POSITION_M = 0.02

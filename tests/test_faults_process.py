@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.boards import parse_board
 from cubeloc.calib.camera_info import (
     CameraCalibration,
@@ -30,7 +31,6 @@ from cubeloc.calib.camera_info import (
 )
 from cubeloc.drivers.sequence import SequenceWriter, read_image, read_sequence_index
 from cubeloc.fakes.board_views import board_views, synthetic_board_camera
-
 from tests.conftest import REPO
 
 KILLS = 20

@@ -16,15 +16,15 @@ import time
 
 import pytest
 import structlog
+from helpers import ROUTER, end_process, helper_process, wait_until
+
 from cubeloc.daemon.preflight import prepare_on_loopback
 from cubeloc.daemon.sdnotify import SystemdNotifier
 from cubeloc.daemon.service import Daemon
 from cubeloc.fakes.faulty import CyclingCamera, FaultyCamera, orbit_frames
+from cubeloc.net import free_port
 from cubeloc.positioning.single_frame import TargetPoseProcessor
 from cubeloc.positioning.target_pose import PoseOptions
-from helpers import ROUTER, end_process, helper_process, wait_until
-
-from cubeloc.net import free_port
 
 FPS = 10.0
 

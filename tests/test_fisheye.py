@@ -9,6 +9,7 @@ import shutil
 
 import numpy as np
 from conftest import real_photographs
+
 from cubeloc.calib.boards import parse_board
 from cubeloc.calib.camera_info import read_camera_info
 from cubeloc.fakes import render_view

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from cubeloc.atomic import atomic_open
 from cubeloc.calib.camera_info import (
     CameraCalibration,
     paper_camera,
@@ -11,11 +13,9 @@ from cubeloc.calib.camera_info import (
     write_camera_info,
 )
 from cubeloc.daemon.config import load_config
+from cubeloc.errors import ConfigError, InputFileError
 from cubeloc.positioning.geometry import Transform, canonical_quaternion, look_at
 from cubeloc.positioning.target import load_target, make_cube
-
-from cubeloc.atomic import atomic_open
-from cubeloc.errors import ConfigError, InputFileError
 
 
 def test_config_defaults_and_file(tmp_path):
@@ -159,6 +159,7 @@ def test_cli_help_and_user_errors(cli):
 
 def test_ray_grid_inverts_opencv_projection_exactly():
     import cv2
+
     from cubeloc.fakes.optics import project, ray_grid
 
     calibration = CameraCalibration(

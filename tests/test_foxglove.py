@@ -20,6 +20,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from foxglove_client import FoxgloveClient
+from helpers import half_resolution, wait_until
+from mcap.exceptions import EndOfFile
+from mcap.reader import NonSeekingReader, make_reader
+from test_daemon_loop import CAMERA_POSITION, Script, make_prepared, start_daemon
+
 from cubeloc.calib.camera_info import write_camera_info
 from cubeloc.daemon.config import FoxgloveConfig
 from cubeloc.daemon.frame_queue import CapturedFrame
@@ -27,18 +33,12 @@ from cubeloc.daemon.viewer import LiveViewer
 from cubeloc.drivers.base import Frame
 from cubeloc.fakes import render_view
 from cubeloc.fakes.sequence import write_synthetic_sequence
+from cubeloc.net import free_port
 from cubeloc.positioning.camera_model import project
 from cubeloc.positioning.estimator import FrameResult
 from cubeloc.positioning.frames import RobotFrames
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.target import default_cube_yaml, make_cube
-from foxglove_client import FoxgloveClient
-from helpers import half_resolution, wait_until
-from mcap.exceptions import EndOfFile
-from mcap.reader import NonSeekingReader, make_reader
-from test_daemon_loop import CAMERA_POSITION, Script, make_prepared, start_daemon
-
-from cubeloc.net import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 TOPICS = {
@@ -310,9 +310,10 @@ def test_a_kill_9_leaves_an_mcap_file_readable_up_to_its_last_chunk(tmp_path):
 
 
 def test_live_calibration_shows_the_board_the_coverage_and_the_hint_in_foxglove(tmp_path):
+    from test_calib_cli import CAMERA, CHARUCO
+
     from cubeloc.calib.boards import parse_board
     from cubeloc.fakes.board_views import write_board_sequence
-    from test_calib_cli import CAMERA, CHARUCO
 
     sequence = tmp_path / "seq"
     write_board_sequence(sequence, parse_board(CHARUCO), CAMERA, count=30, seed=6)

@@ -16,6 +16,9 @@ import warnings
 import cv2
 import numpy as np
 import pytest
+from hypothesis import event, given, settings
+from hypothesis import strategies as st
+
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera
 from cubeloc.fakes import render_view
 from cubeloc.positioning.detection import TagDetector
@@ -25,8 +28,6 @@ from cubeloc.positioning.single_frame import TargetPoseProcessor
 from cubeloc.positioning.target import make_cube
 from cubeloc.positioning.target_pose import PoseOptions, unique_target_detections
 from cubeloc.positioning.tracking.processor import TrackingProcessor
-from hypothesis import event, given, settings
-from hypothesis import strategies as st
 
 W, H = 400, 320
 FOCAL = 500.0

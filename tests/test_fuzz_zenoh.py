@@ -18,12 +18,12 @@ import time
 import numpy as np
 import pytest
 import yaml
-from cubeloc.fakes import render_view
-from cubeloc.positioning.geometry import look_at
 from helpers import Listener
 from test_daemon_loop import CAMERA_POSITION, Script, make_prepared, start_daemon
 
+from cubeloc.fakes import render_view
 from cubeloc.net import free_port
+from cubeloc.positioning.geometry import look_at
 
 NAME = "looptest"  # make_prepared's daemon name
 

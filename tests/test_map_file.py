@@ -14,7 +14,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import half_resolution
+
 from cubeloc.calib.camera_info import paper_camera, write_camera_info
+from cubeloc.errors import InputFileError
 from cubeloc.fakes import render_view
 from cubeloc.fakes.room import Box, Room
 from cubeloc.fakes.sequence import write_synthetic_sequence
@@ -27,9 +30,6 @@ from cubeloc.positioning.tracking.map_file import SCHEMA, load_map, save_map
 from cubeloc.positioning.tracking.options import TrackerOptions
 from cubeloc.positioning.tracking.processor import TrackingProcessor
 from cubeloc.positioning.tracking.relocalise import Relocaliser
-from helpers import half_resolution
-
-from cubeloc.errors import InputFileError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -306,11 +306,11 @@ def _daemon(sequence: Path, map_file: Path, port: int, **map_section):
 
 
 def test_the_daemon_saves_its_map_and_boots_on_it_without_the_cube(mapped, tmp_path, listeners):
-    from cubeloc.drivers.sequence import SequenceWriter
-    from cubeloc.positioning.tracking.map_file import read_header
     from helpers import wait_until
 
+    from cubeloc.drivers.sequence import SequenceWriter
     from cubeloc.net import free_port
+    from cubeloc.positioning.tracking.map_file import read_header
 
     _, orbit = mapped
     map_file = tmp_path / "robot.map"

@@ -5,6 +5,7 @@ along the drift (Map.correct), and a loaded map's points that are no longer ther
 from __future__ import annotations
 
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.map import Map
 from cubeloc.positioning.tracking.options import TrackerOptions

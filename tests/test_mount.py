@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from cubeloc.daemon.cli import main
 from cubeloc.daemon.config import FramesConfig, tomllib
 from cubeloc.daemon.messages import encode, pose_payload
@@ -19,7 +21,6 @@ from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.mount import MountError, make_pairs, solve_mount
 from cubeloc.positioning.target import default_cube_yaml, make_cube
 from cubeloc.positioning.tracking.odometry import OdometryBuffer
-from scipy.spatial.transform import Rotation
 
 OPTICAL = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix()  # z ahead, x right, on a base x ahead
 FLOOR_Z = -make_cube().cube.side_m / 2  # the cube's bottom face: the floor of its frame

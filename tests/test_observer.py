@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.fakes import render_view
 from cubeloc.positioning.detection import TagDetector

@@ -7,10 +7,11 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from cubeloc.fakes.odometry import simulate_odometry
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryModel, OdometryPrior
-from scipy.spatial.transform import Rotation
 
 T0 = 1_700_000_000 * 10**9
 

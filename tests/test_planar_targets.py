@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.fakes import Room, render_view
 from cubeloc.fakes.lenses import lens_calibration

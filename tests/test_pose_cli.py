@@ -8,12 +8,13 @@ import json
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
+
 from cubeloc.calib.camera_info import paper_camera, write_camera_info
 from cubeloc.fakes import render_view
 from cubeloc.positioning.detection import TagDetector
 from cubeloc.positioning.range_map import camera_on_sphere
 from cubeloc.positioning.target import default_cube_yaml
-from PIL import Image
 
 
 @pytest.fixture(scope="module")

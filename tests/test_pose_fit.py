@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from cubeloc.positioning.camera_model import project_normalised
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.map import Map

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.positioning.range_map import (
     FaceAngleSample,

@@ -12,6 +12,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+
 from cubeloc.daemon.cameras import make_camera
 from cubeloc.drivers.aravis_camera import AravisCamera
 from cubeloc.drivers.base import CameraSettings, EndOfStream, FrameTimeout
@@ -204,8 +205,8 @@ def test_record_with_odometry_keeps_what_the_robot_sends_as_it_arrived(cli, tmp_
     import json
 
     import zenoh
-    from cubeloc.daemon.odometry_in import read_odometry_file
 
+    from cubeloc.daemon.odometry_in import read_odometry_file
     from cubeloc.net import free_port
 
     source = tmp_path / "source"

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from cubeloc.daemon.config import load_config
 from cubeloc.daemon.messages import base_pose_payload, map_odom_payload, pose_payload
+from cubeloc.errors import ConfigError
 from cubeloc.positioning.estimator import PoseEstimate, PoseSource, PoseState
 from cubeloc.positioning.frames import RobotFrames, reframe_covariance
 from cubeloc.positioning.geometry import Transform, look_at
-from scipy.spatial.transform import Rotation
-
-from cubeloc.errors import ConfigError
 
 # A camera 0.4 m ahead of the base and 0.9 m up, looking forward and 20 deg down (optical
 # frame: z forward, x right, y down), as a hand-measured [frames.base_from_camera] would say.

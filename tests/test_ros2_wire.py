@@ -12,6 +12,8 @@ import time
 
 import numpy as np
 import pytest
+from ros2_msgs import decode
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.daemon.config import Ros2Config
 from cubeloc.daemon.messages import CameraStatus, StatusReport
@@ -30,7 +32,6 @@ from cubeloc.daemon.ros2 import (
 from cubeloc.positioning.estimator import PoseEstimate, PoseState
 from cubeloc.positioning.frames import RobotFrames
 from cubeloc.positioning.geometry import Transform, look_at
-from ros2_msgs import decode
 
 # rmw_zenoh docs/design.md (commit 99a6a2b), "Topic and Service name mapping" and "Graph Cache"
 DOC_CHATTER_KEY = "0/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
@@ -252,6 +253,7 @@ def test_the_robot_localization_example_reads_the_topics_and_frames_cubeloc_publ
     from pathlib import Path
 
     import yaml
+
     from cubeloc.daemon.config import FramesConfig
 
     example = yaml.safe_load((Path(__file__).parents[1] / "examples" / "ekf.yaml").read_text())

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import half_resolution
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.fakes.camera import SyntheticCamera
 from cubeloc.fakes.scenarios import TIMING, scenario_effects
 from cubeloc.fakes.trajectories import make_trajectory
 from cubeloc.positioning.target import make_cube
-from helpers import half_resolution
 
 CUBE = np.concatenate([tag.corners for tag in make_cube().tags])
 

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from cubeloc.fakes import render_view
-from cubeloc.positioning.geometry import look_at
 from test_daemon_loop import CAMERA_POSITION, Script, make_prepared, start_daemon
 
+from cubeloc.fakes import render_view
 from cubeloc.net import free_port
+from cubeloc.positioning.geometry import look_at
 
 REPO = Path(__file__).resolve().parents[1]
 NAME = "looptest"  # make_prepared's daemon name

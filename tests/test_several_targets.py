@@ -6,16 +6,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from cubeloc.calib.camera_info import paper_camera, write_camera_info
 from cubeloc.daemon.config import Config
 from cubeloc.daemon.preflight import combined_target
+from cubeloc.errors import InputFileError
 from cubeloc.fakes import render_view
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.single_frame import TargetPoseProcessor
 from cubeloc.positioning.target import combine_targets, default_cube_yaml, make_cube
-from scipy.spatial.transform import Rotation
-
-from cubeloc.errors import InputFileError
 
 # the second cube 1.6 m along the map's x from the first, turned 90 deg
 SECOND = Transform(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [1.6, 0.0, 0.0])

@@ -10,6 +10,7 @@ import cv2
 import numba
 import numpy as np
 import pytest
+
 from cubeloc.positioning import step_profiles
 from cubeloc.positioning.detection import _fit_lines
 from cubeloc.positioning.step_profiles import step_positions

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+
 from cubeloc.daemon.config import Config, load_config
 
 REPO = Path(__file__).resolve().parents[1]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera, write_camera_info
 from cubeloc.daemon.cli import main
 from cubeloc.fakes import render_view

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.fakes.optics import project
 from cubeloc.positioning.detection import TagDetection

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration, paper_camera
 from cubeloc.fakes import render_view
 from cubeloc.fakes.optics import project

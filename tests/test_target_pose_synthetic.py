@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from structlog.testing import capture_logs
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.fakes import render_view
 from cubeloc.fakes.optics import project
@@ -16,7 +18,6 @@ from cubeloc.positioning.geometry import look_at
 from cubeloc.positioning.single_frame import TargetPoseProcessor
 from cubeloc.positioning.target import make_cube
 from cubeloc.positioning.target_pose import estimate_target_pose
-from structlog.testing import capture_logs
 
 CUBE = make_cube()
 CAMERA = paper_camera()

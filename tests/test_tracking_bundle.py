@@ -7,13 +7,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_tracking_core import CAL, CUBE, SyntheticTracks, room_points, visible_ids
+
 from cubeloc.positioning.camera_model import undistort
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.tracking.bundle import apply_solution, build_problem, solve
 from cubeloc.positioning.tracking.hold import Drift
 from cubeloc.positioning.tracking.map import Map
 from cubeloc.positioning.tracking.options import BundleOptions, TrackerOptions
-from test_tracking_core import CAL, CUBE, SyntheticTracks, room_points, visible_ids
 
 
 def perturbed_window(seed: int = 5) -> tuple[Map, SyntheticTracks, list[Transform], np.ndarray]:

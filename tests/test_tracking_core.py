@@ -12,6 +12,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.fakes.optics import project
 from cubeloc.positioning.estimator import PoseSource, PoseState

@@ -4,12 +4,13 @@ target posed, and holding a bundle adjustment window's scale once the target has
 from __future__ import annotations
 
 import numpy as np
+from test_tracking_core import CAL
+
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.tracking.bundle import apply_solution, build_problem, solve
 from cubeloc.positioning.tracking.floor import Floor, TargetView, find_floor, floor_from_views
 from cubeloc.positioning.tracking.map import Map
 from cubeloc.positioning.tracking.options import BundleOptions, FloorOptions
-from test_tracking_core import CAL
 
 FLOOR_Z, CAMERA_Z = -0.87, 0.30  # the cube on a 0.78 m table, the camera 1.17 m above the floor
 ON = FloorOptions(enabled=True)  # off by default (docs/tracker.md, "The floor")

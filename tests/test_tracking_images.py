@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import half_resolution
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.drivers.sequence import read_image, read_sequence_index
 from cubeloc.fakes.optics import project, undistort_pixels
@@ -25,7 +27,6 @@ from cubeloc.positioning.tracking.features import KltFrontEnd
 from cubeloc.positioning.tracking.options import BundleOptions, FeatureOptions
 from cubeloc.positioning.tracking.processor import ProcessorOptions, TrackingProcessor
 from cubeloc.positioning.trajectory_io import StampedPose, read_tum
-from helpers import half_resolution
 
 SYNC = ProcessorOptions()
 # bundle adjustment in the frame loop (deterministic) and lighter than the daemon's

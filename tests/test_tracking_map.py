@@ -4,6 +4,7 @@ rays: which points it makes, and from which keyframes."""
 from __future__ import annotations
 
 import numpy as np
+
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.map import Map

@@ -6,10 +6,11 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from test_tracking_core import CAL, SYNC, SyntheticTracks, room_points, run, trolley_path
+
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.tracker import Tracker
 from cubeloc.positioning.tracking.types import Tracks
-from test_tracking_core import CAL, SYNC, SyntheticTracks, room_points, run, trolley_path
 
 
 def test_motion_model_predicts_where_tracks_land_after_a_skipped_frame():

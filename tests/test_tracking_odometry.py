@@ -5,6 +5,9 @@ bundle adjustment in the frame loop): the same frames with and without simulated
 from __future__ import annotations
 
 import numpy as np
+from helpers import half_resolution
+from test_tracking_scenarios import SYNC, score_results
+
 from cubeloc.daemon.replay import OdometryReplay, track_sequence
 from cubeloc.fakes.odometry import mount_of, simulate_odometry
 from cubeloc.fakes.sequence import write_synthetic_sequence
@@ -14,8 +17,6 @@ from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.target import make_cube
 from cubeloc.positioning.tracking.odometry import OdometryBuffer, OdometryPrior
 from cubeloc.positioning.trajectory_io import read_tum
-from helpers import half_resolution
-from test_tracking_scenarios import SYNC, score_results
 
 SECONDS = 26.0
 

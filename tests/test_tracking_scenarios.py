@@ -14,6 +14,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import half_resolution
+
 from cubeloc.daemon.replay import track_sequence
 from cubeloc.fakes.lenses import lens_calibration
 from cubeloc.fakes.sequence import write_synthetic_sequence
@@ -21,7 +23,6 @@ from cubeloc.positioning.estimator import PoseSource, PoseState
 from cubeloc.positioning.evaluation import score_estimates
 from cubeloc.positioning.tracking.processor import ProcessorOptions
 from cubeloc.positioning.trajectory_io import read_tum
-from helpers import half_resolution
 
 SYNC = ProcessorOptions.in_frame_loop()
 

@@ -156,10 +156,10 @@ def _run_images(args, board, options, out: Path, report_png: Path) -> int:
 
 def _write_results(run, out: Path, report_png: Path, views_note: str = "") -> None:
     import cv2
-    from cubeloc.calib.camera_info import write_camera_info
-    from cubeloc.calib.report import format_report, render_report
 
     from cubeloc.atomic import atomic_write_bytes
+    from cubeloc.calib.camera_info import write_camera_info
+    from cubeloc.calib.report import format_report, render_report
 
     for line in format_report(run.solution, run.verdict, list(run.skipped)):
         print(line)
@@ -285,6 +285,7 @@ def _write_views(views_dir: Path, board, accepted) -> None:
     import hashlib
 
     import cv2
+
     from cubeloc.calib.corners_cache import ImageRecord, save_cache
 
     staging = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.", dir=views_dir.parent))

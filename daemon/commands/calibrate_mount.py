@@ -55,15 +55,15 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     import numpy as np
-    from cubeloc.daemon.commands import check_out
-    from cubeloc.daemon.config import Config, load_config
-    from cubeloc.daemon.odometry_in import read_odometry_file
-    from cubeloc.positioning.mount import camera_height, make_pairs, solve_mount
-    from cubeloc.positioning.tracking.odometry import OdometryBuffer
     from scipy.spatial.transform import Rotation
 
     from cubeloc.atomic import atomic_write_text
+    from cubeloc.daemon.commands import check_out
+    from cubeloc.daemon.config import Config, load_config
+    from cubeloc.daemon.odometry_in import read_odometry_file
     from cubeloc.errors import InputFileError
+    from cubeloc.positioning.mount import camera_height, make_pairs, solve_mount
+    from cubeloc.positioning.tracking.odometry import OdometryBuffer
 
     for name, value in (("--height", args.height), ("--base-height", args.base_height)):
         if value is not None and (not math.isfinite(value) or abs(value) > 5.0):
@@ -129,10 +129,10 @@ def _read_poses(path: Path) -> list:
     """(stamp_ns, T_world_camera, measured by the target) of the poses the camera
     measured, in time order."""
     import numpy as np
-    from cubeloc.positioning.geometry import Transform
 
     from cubeloc.errors import InputFileError
     from cubeloc.jsonlines import read_json_lines
+    from cubeloc.positioning.geometry import Transform
 
     def parse(doc: dict):
         if doc.get("schema") not in ("cubeloc.pose/1", "cubeloc.pose/3"):

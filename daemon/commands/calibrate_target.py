@@ -55,13 +55,12 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from cubeloc.atomic import atomic_write_text
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.commands.calibrate import expand_images
     from cubeloc.drivers.sequence import read_image_sized
     from cubeloc.positioning.target import load_target
     from cubeloc.positioning.target_calibration import calibrate_target, observe
-
-    from cubeloc.atomic import atomic_write_text
 
     out = Path(args.out)
     if out.exists() and not args.force:
@@ -97,6 +96,9 @@ def place(args, out: Path) -> int:
     inverse(T_world_camera(other)) per image where each gives a pose of its own, averaged
     (rotations by their mean, translations by theirs) with its spread reported."""
     import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from cubeloc.atomic import atomic_write_text
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.commands.calibrate import expand_images
     from cubeloc.daemon.config import Config, load_config
@@ -104,9 +106,6 @@ def place(args, out: Path) -> int:
     from cubeloc.positioning.geometry import Transform
     from cubeloc.positioning.single_frame import TargetPoseProcessor
     from cubeloc.positioning.target import load_target
-    from scipy.spatial.transform import Rotation
-
-    from cubeloc.atomic import atomic_write_text
 
     first, other = load_target(args.target), load_target(args.place)
     if set(first.ids) & set(other.ids):

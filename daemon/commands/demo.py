@@ -62,15 +62,15 @@ def run(args) -> int:
     import json
 
     import zenoh
+
     from cubeloc.calib.camera_info import paper_camera, write_camera_info
     from cubeloc.daemon.commands.echo import format_pose
     from cubeloc.daemon.config import Config
     from cubeloc.daemon.logs import configure_logging
     from cubeloc.daemon.preflight import prepare
     from cubeloc.daemon.service import Daemon
-    from cubeloc.positioning.target import default_cube_yaml
-
     from cubeloc.errors import ConfigError
+    from cubeloc.positioning.target import default_cube_yaml
 
     if not (0 < args.seconds <= 600 and 0 < args.fps <= 100):
         raise ConfigError(f"--seconds {args.seconds:g} must be in (0, 600] and --fps {args.fps:g} in (0, 100]")
@@ -145,6 +145,7 @@ def run(args) -> int:
 def summary(received: list[dict], daemon, camera, elapsed_s: float) -> str:
     """Accuracy against the synthetic camera's ground truth, and rates."""
     import numpy as np
+
     from cubeloc.positioning.geometry import Transform
 
     stats = daemon.stats

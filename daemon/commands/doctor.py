@@ -65,7 +65,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from cubeloc.daemon.logs import configure_logging
-
     from cubeloc.errors import ConfigError
 
     configure_logging("error", "console", stream=sys.stderr)
@@ -85,7 +84,6 @@ def run(args) -> int:
 def diagnose(config_path: str | None, include_fake: bool = False, timeout_s: float = ZENOH_TIMEOUT_S) -> list[Check]:
     """Every check, in the order a technician would go."""
     from cubeloc.daemon.cameras import parse_source
-
     from cubeloc.errors import CubelocError
 
     config, checks = check_config(config_path)
@@ -124,7 +122,6 @@ def diagnose(config_path: str | None, include_fake: bool = False, timeout_s: flo
 # -- configuration ---------------------------------------------------------------------------
 def check_config(path: str | None):
     from cubeloc.daemon.config import DEFAULT_CONFIG_PATH, load_config
-
     from cubeloc.errors import CubelocError
 
     try:
@@ -192,7 +189,6 @@ def probe_camera(device) -> CameraProbe:
     """Open the camera briefly (unless someone holds it): sensor size, GigE packet size."""
     from cubeloc.drivers.aravis_camera import _aravis, camera_lock_key
     from cubeloc.drivers.ownership import CameraLock
-
     from cubeloc.errors import CubelocError
 
     aravis_id = device.device_id.removeprefix("aravis:")
@@ -225,7 +221,6 @@ def probe_camera(device) -> CameraProbe:
 # -- files -------------------------------------------------------------------------------
 def check_calibration(config, config_path: str | None, device, probe: CameraProbe | None) -> list[Check]:
     from cubeloc.calib.camera_info import read_camera_info
-
     from cubeloc.errors import CubelocError
 
     path = config.positioning.calibration
@@ -265,9 +260,8 @@ def check_calibration(config, config_path: str | None, device, probe: CameraProb
 
 
 def check_target(config) -> Check:
-    from cubeloc.positioning.target import load_target
-
     from cubeloc.errors import CubelocError
+    from cubeloc.positioning.target import load_target
 
     path = config.positioning.target
     try:
@@ -315,8 +309,8 @@ def _port_free(endpoint: str) -> bool:
 
 def check_zenoh(config, timeout_s: float = ZENOH_TIMEOUT_S) -> list[Check]:
     import zenoh
-    from cubeloc.daemon.zenoh_session import build_zenoh_config, zenoh_error_text
 
+    from cubeloc.daemon.zenoh_session import build_zenoh_config, zenoh_error_text
     from cubeloc.errors import CubelocError
 
     settings = config.zenoh

@@ -73,6 +73,7 @@ def check_usb() -> list[Check]:
 
     try:
         import usb.core
+
         from cubeloc.drivers.usb import _facts
     except ImportError:
         return [Check("usb", WARN, "pyusb is not installed: USB permissions and link speed not checked",

@@ -72,10 +72,10 @@ def format_status(name: str, doc: dict) -> str:
 
 def run(args) -> int:
     import zenoh
+
     from cubeloc.daemon.commands.run import load_for_command_line
     from cubeloc.daemon.logs import configure_logging
     from cubeloc.daemon.zenoh_session import open_session
-
     from cubeloc.errors import ConfigError
 
     if not 0 < args.wait <= 3600:

@@ -21,7 +21,6 @@ import sys
 from pathlib import Path
 
 from cubeloc.daemon.commands import check_out
-
 from cubeloc.errors import InputFileError
 
 
@@ -63,10 +62,9 @@ def _png_bytes(image, dpi: float) -> bytes:
 
 
 def run_cube(args) -> int:
+    from cubeloc.atomic import atomic_write_bytes, atomic_write_text
     from cubeloc.positioning import printable
     from cubeloc.positioning.target import load_target
-
-    from cubeloc.atomic import atomic_write_bytes, atomic_write_text
 
     if not 72 <= args.dpi <= 2400:
         raise InputFileError(f"--dpi {args.dpi:g}: choose a printer resolution between 72 and 2400")
@@ -118,10 +116,9 @@ def register_board(kinds) -> None:
 
 
 def run_board(args) -> int:
+    from cubeloc.atomic import atomic_write_bytes
     from cubeloc.calib.boards import parse_board
     from cubeloc.calib.printable_board import board_sheet, sheet_bytes
-
-    from cubeloc.atomic import atomic_write_bytes
 
     out = Path(args.out)
     file_format = out.suffix.lower().lstrip(".")
@@ -159,9 +156,8 @@ def register_aprilgrid(kinds) -> None:
 
 
 def run_aprilgrid(args) -> int:
-    from cubeloc.positioning.target import make_aprilgrid
-
     from cubeloc.atomic import atomic_write_bytes
+    from cubeloc.positioning.target import make_aprilgrid
 
     if not 0.001 <= args.tag_size <= 10:
         raise InputFileError(f"--tag-size {args.tag_size:g}: give the tag edge in metres (0.001-10)")

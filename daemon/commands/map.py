@@ -33,9 +33,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from cubeloc.positioning.tracking.map_file import export_ply, map_summary
-
     from cubeloc.errors import InputFileError
+    from cubeloc.positioning.tracking.map_file import export_ply, map_summary
 
     if args.map_verb == "info":
         summary = map_summary(Path(args.map))
@@ -64,10 +63,9 @@ def run(args) -> int:
 
 def _prune(args) -> int:
     from cubeloc.calib.camera_info import read_camera_info
+    from cubeloc.errors import InputFileError
     from cubeloc.positioning.target import load_target
     from cubeloc.positioning.tracking.map_file import load_map, save_map
-
-    from cubeloc.errors import InputFileError
 
     if args.keyframes < 2:
         raise InputFileError(f"--keyframes {args.keyframes}: at least 2")

@@ -47,7 +47,6 @@ def run(args) -> int:
     from cubeloc.daemon.logs import configure_logging
     from cubeloc.drivers.recorder import record_sequence
     from cubeloc.drivers.sequence import SequenceWriter, camera_dir
-
     from cubeloc.errors import ConfigError, InputFileError
 
     if args.frames is not None and args.frames <= 0:
@@ -140,7 +139,6 @@ def _mcap(path: Path, config):
     Image panel's overlay); a recording needs no target."""
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.viewer import McapRecording
-
     from cubeloc.errors import CubelocError
 
     try:

@@ -34,10 +34,10 @@ def register(subparsers) -> None:
 
 def load_for_command_line(args):
     """The config from ``--config`` (or the defaults), with the command-line overrides."""
-    from cubeloc.daemon.config import Config, load_config
-    from cubeloc.daemon.zenoh_session import settings_from_arguments
     from pydantic import ValidationError
 
+    from cubeloc.daemon.config import Config, load_config
+    from cubeloc.daemon.zenoh_session import settings_from_arguments
     from cubeloc.errors import ConfigError
 
     config = load_config(getattr(args, "config", None))
@@ -61,6 +61,7 @@ def load_for_command_line(args):
 
 def run(args) -> int:
     import structlog
+
     from cubeloc.daemon.logs import configure_logging
     from cubeloc.daemon.preflight import prepare
     from cubeloc.daemon.service import Daemon

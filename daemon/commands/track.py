@@ -68,6 +68,8 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     import structlog
+
+    from cubeloc.atomic import atomic_write_text
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.config import Config, load_config
     from cubeloc.daemon.logs import configure_logging
@@ -75,12 +77,10 @@ def run(args) -> int:
     from cubeloc.daemon.preflight import odometry_prior, processor_options
     from cubeloc.daemon.replay import OdometryReplay, track_sequence
     from cubeloc.drivers.sequence import read_sequence_index
+    from cubeloc.errors import InputFileError
     from cubeloc.positioning.evaluation import absolute_trajectory_error
     from cubeloc.positioning.target import load_target
     from cubeloc.positioning.trajectory_io import StampedPose, read_tum, write_tum
-
-    from cubeloc.atomic import atomic_write_text
-    from cubeloc.errors import InputFileError
 
     configure_logging("warning", stream=sys.stderr)  # stdout is for the summary
     log = structlog.get_logger()

@@ -18,6 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 import structlog
+
 from cubeloc.positioning.camera_model import undistort
 from cubeloc.positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState
 from cubeloc.positioning.geometry import Transform

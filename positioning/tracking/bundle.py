@@ -36,15 +36,16 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import csr_matrix
+from scipy.spatial.transform import Rotation
+from threadpoolctl import ThreadpoolController
+
 from cubeloc.positioning.geometry import Transform, robust_sigma, skew
 from cubeloc.positioning.tracking import schur_lm
 from cubeloc.positioning.tracking.floor import Floor, FloorRows, on_the_floor
 from cubeloc.positioning.tracking.map import Map
 from cubeloc.positioning.tracking.options import BundleOptions, FloorOptions
-from scipy.optimize import least_squares
-from scipy.sparse import csr_matrix
-from scipy.spatial.transform import Rotation
-from threadpoolctl import ThreadpoolController
 
 
 @dataclass(frozen=True)

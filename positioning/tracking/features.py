@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
 from cubeloc.positioning.geometry import robust_sigma
 from cubeloc.positioning.tracking.options import FeatureOptions
 from cubeloc.positioning.tracking.patch_alignment import PatchAligner

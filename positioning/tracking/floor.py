@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform, skew
 from cubeloc.positioning.tracking.options import FloorOptions
 

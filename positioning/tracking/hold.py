@@ -18,6 +18,7 @@ from __future__ import annotations
 import collections
 
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.map import Map
 from cubeloc.positioning.tracking.motion import Held, MotionModel

@@ -27,6 +27,7 @@ import enum
 from dataclasses import dataclass, replace
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.camera_model import project
 from cubeloc.positioning.geometry import Transform

@@ -10,6 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 import structlog
+
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.map import Keyframe
 from cubeloc.positioning.tracking.types import TrackedFrame

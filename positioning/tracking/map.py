@@ -15,6 +15,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.options import TrackerOptions
 from cubeloc.positioning.tracking.twoview import baseline_scale_var, triangulate

@@ -41,14 +41,14 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from cubeloc.calib.camera_info import CameraCalibration
-from cubeloc.positioning.geometry import Transform
-from cubeloc.positioning.target import Target
-from cubeloc.positioning.tracking.map import FIXED_BIRTH, Keyframe, Map
 
 from cubeloc import __version__
 from cubeloc.atomic import atomic_open
+from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.errors import InputFileError
+from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.target import Target
+from cubeloc.positioning.tracking.map import FIXED_BIRTH, Keyframe, Map
 
 SCHEMA = "cubeloc.map/1"
 ARRAYS = ("point_ids", "points", "point_births", "kf_ids", "kf_stamps", "kf_poses", "kf_anchored", "kf_sigmas", "obs_offsets",

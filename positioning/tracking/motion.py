@@ -18,6 +18,7 @@ correction (``relocalised``: where the camera is, not how it moves) or too noisy
 from __future__ import annotations
 
 import numpy as np
+
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.odometry import OdometryPrior
 from cubeloc.positioning.tracking.options import TrackerOptions

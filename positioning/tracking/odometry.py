@@ -35,8 +35,9 @@ import threading
 from dataclasses import dataclass, field
 
 import numpy as np
-from cubeloc.positioning.geometry import Transform
 from scipy.spatial.transform import Rotation
+
+from cubeloc.positioning.geometry import Transform
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
 from cubeloc.positioning.tracking.options import AlignmentOptions
 
 

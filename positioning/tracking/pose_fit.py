@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+
 from cubeloc.positioning.camera_model import project_normalised
 from cubeloc.positioning.geometry import Transform, robust_sigma, skew
 

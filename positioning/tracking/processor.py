@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.camera_model import ahead_mask, outline_pixels, project_normalised
 from cubeloc.positioning.detection import DetectorOptions

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.camera_model import ahead_mask, project, project_normalised, undistort
 from cubeloc.positioning.geometry import Transform
@@ -22,7 +24,6 @@ from cubeloc.positioning.tracking.features import find_corners, view_at_scale
 from cubeloc.positioning.tracking.map import Keyframe, Map
 from cubeloc.positioning.tracking.options import TrackerOptions
 from cubeloc.positioning.tracking.pose_fit import fit_pose, pnp_ransac
-from scipy.spatial import cKDTree
 
 ORB_PATCH_PX = 31  # ORB's default patch; keypoints closer than half of it to the edge are dropped
 

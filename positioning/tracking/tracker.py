@@ -49,6 +49,7 @@ from dataclasses import replace
 
 import numpy as np
 import structlog
+
 from cubeloc.calib.camera_info import CameraCalibration
 from cubeloc.positioning.camera_model import project, undistort
 from cubeloc.positioning.estimator import FrameResult, PoseEstimate, PoseSource, PoseState

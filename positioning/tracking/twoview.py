@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from cubeloc.positioning.camera_model import project_normalised
 from cubeloc.positioning.geometry import Transform
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from cubeloc.positioning.estimator import FrameResult
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.initialiser import InitStatus
