@@ -104,6 +104,12 @@ def previous_tree(commit: str, work: Path, given: str | None = None) -> Iterator
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)
 
 
+def baseline_commit(default: str) -> str:
+    """The commit a bench runs beside this tree: ``CUBELOC_BENCH_BASELINE_COMMIT`` when set
+    (the tree before a change, to measure the change alone), else the bench's ``default``."""
+    return os.environ.get("CUBELOC_BENCH_BASELINE_COMMIT") or default
+
+
 @contextlib.contextmanager
 def renders_root(bench: str, variable: str = "CUBELOC_BENCH_SEQUENCES") -> Iterator[tuple[Path, Path]]:
     """(where a bench keeps its renders, a scratch folder): the folder ``variable`` names

@@ -18,6 +18,7 @@ the cube out of view, no pose beyond 5 sigma. On a seed the generator flags unob
 the goal is the same coverage with the position held (its covariance growing), so the
 flag is shown beside the figures, not taken off them.
 
+``CUBELOC_BENCH_BASELINE_COMMIT`` another baseline commit (the tree before a change);
 ``CUBELOC_BENCH_FAMILY_SET``: ``half`` (default; 12 seeds at 640x512, for day-to-day
 work) or ``full`` (40 seeds at 1280x1024). ``CUBELOC_BENCH_FAMILY_SEEDS=1,2,3`` picks seeds;
 ``CUBELOC_BENCH_BASELINE=DIR`` an existing checkout of the baseline instead of a worktree;
@@ -46,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, machine_line, markdown_table, previous_tree
+from bench.common import REPO, baseline_commit, machine_line, markdown_table, previous_tree
 from bench.scenarios import _track, read_poses
 
 TITLE = "Tracker on the randomized family of scenes, robots and motions"
@@ -148,7 +149,8 @@ def measure(seeds: list[int], which: str, root: Path, baseline: bool, jobs: int,
     with tempfile.TemporaryDirectory(prefix="cubeloc-bench-family-") as tmp:
         work = Path(tmp)
         # the baseline's checkout only when it runs
-        checkout = previous_tree(BASELINE_COMMIT, work, os.environ.get("CUBELOC_BENCH_BASELINE")) if baseline \
+        checkout = previous_tree(baseline_commit(BASELINE_COMMIT), work, os.environ.get("CUBELOC_BENCH_BASELINE")) \
+            if baseline \
             else contextlib.nullcontext(None)
         with checkout as previous:
             trees = [("this tree", REPO)] + ([("baseline", previous)] if previous else [])
@@ -216,7 +218,7 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
             spread_rows))
     return (f"{machine_line()}. Family set `{which}` (seeds {', '.join(map(str, seeds))}), `cubeloc track` per "
             f"seed, bundle adjustment in the frame loop, {jobs} runs at once (fps is each run's own, on a loaded "
-            f"machine); " + (f"**baseline** = commit {BASELINE_COMMIT}. " if "baseline" in by_tree else
+            f"machine); " + (f"**baseline** = commit {baseline_commit(BASELINE_COMMIT)}. " if "baseline" in by_tree else
                          f"this tree alone (`CUBELOC_BENCH_FAMILY_BASELINE=0`; the baseline, commit {BASELINE_COMMIT}, "
                          "on the same frames: [family.md](family.md)). ")
             + (f"{draws} draws a seed: the replay from frame 0 to {draws - 1} (a tree without `cubeloc track "

@@ -23,7 +23,8 @@ only: frames processed and skipped, and the error of what was published.
 Environment: ``CUBELOC_BENCH_SEQUENCES=DIR`` keeps the renders (an hour's worth at full
 resolution, agile's exposure-long blur the most) for later runs; ``CUBELOC_BENCH_SCENARIOS``
 a comma-separated subset; ``CUBELOC_BENCH_BASELINE=DIR`` an existing checkout of the
-previous tracker instead of a fresh worktree.
+previous tracker instead of a fresh worktree; ``CUBELOC_BENCH_BASELINE_COMMIT`` another
+previous commit (the tree before a change).
 """
 
 from __future__ import annotations
@@ -38,7 +39,14 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, machine_line, markdown_table, package_prefix, previous_tree
+from bench.common import (
+    REPO,
+    baseline_commit,
+    machine_line,
+    markdown_table,
+    package_prefix,
+    previous_tree,
+)
 from bench.tracker import _live, _options
 
 TITLE = "Tracker through robot motions: new and previous side by side"
@@ -128,7 +136,7 @@ def run() -> str:
         root = Path(keep) if keep else work / "sequences"
         root.mkdir(parents=True, exist_ok=True)
         rows = []
-        with previous_tree(BASELINE_COMMIT, work, os.environ.get("CUBELOC_BENCH_BASELINE")) as previous:
+        with previous_tree(baseline_commit(BASELINE_COMMIT), work, os.environ.get("CUBELOC_BENCH_BASELINE")) as previous:
             for name in chosen:
                 sequence = _render(root, name)
                 for label, tree, poses in (("new", REPO, True), ("previous", previous, False)):
@@ -156,7 +164,7 @@ def run() -> str:
     live_table = markdown_table(["scenario", "camera fps", "processed", "skipped", "frames with a pose",
                                  "RMS mm", "max mm", "median ms per frame"], live_rows)
     return (f"{machine_line()}. `cubeloc track` per scenario (seed 1, default length, 1280x1024), bundle "
-            f"adjustment in the frame loop; **previous** = commit {BASELINE_COMMIT}. Errors are positions "
+            f"adjustment in the frame loop; **previous** = commit {baseline_commit(BASELINE_COMMIT)}. Errors are positions "
             "against the ground truth with no alignment; fps is the replay's own (PNG decoding excluded), on "
             "a shared machine.\n\n" + table + "\nLive, as the daemon runs it (new tracker; frames on the camera's "
             "clock into the newest-frame slot, bundle adjustment in its worker thread, images decoded "

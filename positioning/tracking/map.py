@@ -34,6 +34,9 @@ class Keyframe:
     # For relocalisation: ORB descriptors of this keyframe's map points
     descriptor_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,)
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # (K, 32)
+    # and the image around each, (K, S, S) uint8 (``PatchAligner.patches``): a match found by
+    # its descriptor is aligned to it, to the pixel precision of a track
+    patches: np.ndarray | None = None
     position_sigma_m: float = 0.0  # its pose's own (target, PnP or match), not the drift
     drift_m: float = 0.0  # the drift's growth since the target when it was made (Drift.grown_m)
     loop_moved: bool = False  # moved by a loop closure's spread (Map.correct with after_ns): no reference

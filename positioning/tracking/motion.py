@@ -105,15 +105,22 @@ class MotionModel:
         unless it cannot have brought the camera here from the last pose measured (PnP
         would refuse this pose against its prediction): lost, the velocity is none and held
         steps make it a standstill, and in a spin every frame after was then found by
-        relocalisation alone (narrow lens at 90 deg/s: 30 frames)."""
+        relocalisation alone (narrow lens at 90 deg/s: 30 frames). Lost, the velocity is
+        unknown: the step from the last pose measured, within ``max_extrapolation_s`` (the
+        relocalisation before this one), is the velocity, as unsure as the two poses' own
+        covariances over the step (without it the next frame's KLT searches unguided, and in a
+        turn loses most of the tracks the relocalisation gave back: blank_wall, 120 -> 2)."""
         if self.measured is not None:
             before, before_stamp = self.measured
             dt = (stamp_ns - before_stamp) / 1e9
             if 0.0 < dt <= self.options.max_extrapolation_s:
                 expected = before if self.velocity is None else self.extrapolated(before, dt)
-                if beyond_motion(pose, expected, self.options):
+                if self.velocity is None or beyond_motion(pose, expected, self.options):
+                    unknown = self.velocity is None
                     self.velocity = velocity(before, pose, dt)
-                    self.velocity_covariance = None if own is None else np.asarray(own)[:3, :3] / dt**2
+                    both = [np.asarray(c, np.float64)[:3, :3] for c in ((self.own if unknown else None), own)
+                            if c is not None]
+                    self.velocity_covariance = sum(both) / dt**2 if both else None
         self.own = None if own is None else np.asarray(own, np.float64)[:3, :3]
         self.measured = (pose, stamp_ns)
         self.last, self.stamp, self.covariance = pose, stamp_ns, covariance

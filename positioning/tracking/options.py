@@ -228,6 +228,9 @@ class TrackerOptions:
     reloc_min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible
     reloc_ratio: float = 0.8  # Lowe's ratio test on Hamming distances
     reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
+    # Gauss-Newton steps aligning a match to its keyframe's patch (relocalise.py): from the
+    # identity warp and a corner up to 1.4 px off, where a track carries its warp on
+    reloc_align_iterations: int = 10
     reloc_max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused
     reloc_boot_iterations: int = 10_000  # RANSAC samples at boot on a saved map (relocalise.py)
     min_reference_points: int = 30  # a loaded map's points in view that give the pose alone (pose_fit.pose_from_map)

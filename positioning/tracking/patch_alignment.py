@@ -78,13 +78,25 @@ class PatchAligner:
     def add(self, image: np.ndarray, ids: np.ndarray, pixels: np.ndarray) -> None:
         """Templates for tracks born at ``pixels`` in ``image`` (float32; replacing any
         templates they had)."""
+        self.add_patches(ids, self.patches(image, pixels))
+
+    def patches(self, image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """The image around each of ``pixels`` (N, 2) as ``add_patches`` takes it: (N, S, S)
+        float32, S = 2 ``radius_px`` + 3 (the template and a pixel more for its gradients)."""
+        pixels = np.asarray(pixels, np.float32).reshape(-1, 2)
+        if len(pixels) == 0:
+            return np.zeros((0, self._side, self._side), np.float32)
+        wide = _sample(np.asarray(image, np.float32), pixels[:, :1] + self._wide[:, 0],
+                       pixels[:, 1:] + self._wide[:, 1])
+        return wide.reshape(-1, self._side, self._side)
+
+    def add_patches(self, ids: np.ndarray, wide: np.ndarray) -> None:
+        """Templates for ``ids`` from ``wide``, patches cut around where each was seen (replacing
+        any templates they had); each warp starts as the identity."""
         ids = np.asarray(ids, np.int64)
         if len(ids) == 0:
             return
-        pixels = np.asarray(pixels, np.float32).reshape(-1, 2)
-        side = self._side
-        wide = _sample(image, pixels[:, :1] + self._wide[:, 0], pixels[:, 1:] + self._wide[:, 1])
-        wide = wide.reshape(-1, side, side)
+        wide = np.asarray(wide, np.float32)
         gx = 0.5 * (wide[:, 1:-1, 2:] - wide[:, 1:-1, :-2])
         gy = 0.5 * (wide[:, 2:, 1:-1] - wide[:, :-2, 1:-1])
         template = wide.reshape(len(ids), -1)[:, self._inner]

@@ -11,6 +11,7 @@ matching a thousand features against a few thousand descriptors takes millisecon
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -23,6 +24,7 @@ from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tracking.features import find_corners, view_at_scale
 from cubeloc.positioning.tracking.map import Keyframe, Map
 from cubeloc.positioning.tracking.options import TrackerOptions
+from cubeloc.positioning.tracking.patch_alignment import PatchAligner
 from cubeloc.positioning.tracking.pose_fit import fit_pose, pnp_ransac
 
 ORB_PATCH_PX = 31  # ORB's default patch; keypoints closer than half of it to the edge are dropped
@@ -55,6 +57,11 @@ class Relocaliser:
         self._orb = cv2.ORB_create(nfeatures=options.orb_features, patchSize=ORB_PATCH_PX,
                                    edgeThreshold=ORB_PATCH_PX)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        alignment = options.features.alignment
+        # from the identity and a corner up to 1.4 px off, not a warp carried on from the
+        # last frame as a track's: more Gauss-Newton steps than a track takes
+        self._aligner = None if alignment is None else PatchAligner(
+            dataclasses.replace(alignment, iterations=options.reloc_align_iterations))
         self._reference_of: Map | None = None  # the map _reference_arrays are of
         self._reference_arrays: tuple = ()
 
@@ -69,6 +76,9 @@ class Relocaliser:
             return
         keyframe.descriptor_ids = np.array([ids[k.class_id] for k in keypoints], dtype=np.int64)
         keyframe.descriptors = descriptors
+        if self._aligner is not None:
+            at = np.array([k.pt for k in keypoints], dtype=np.float32)
+            keyframe.patches = np.clip(np.rint(self._aligner.patches(image, at)), 0, 255).astype(np.uint8)
 
     def refind(self, image: np.ndarray, world_map: Map, pose: Transform, tracked: np.ndarray) -> Refound:
         """A loaded map's points (the reference, ``world_map.fixed``) found again in
@@ -135,6 +145,23 @@ class Relocaliser:
         return Refound(ids[rows], at[corner].reshape(-1, 2), none.visible,
                        np.concatenate([none.found, ids[np.array(present, dtype=np.int64)]]))
 
+    def _aligned(self, image: np.ndarray, ids: np.ndarray, pixels: np.ndarray, patches: dict[int, np.ndarray]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """``pixels`` of the map points ``ids`` aligned to the patches their keyframes saw
+        them in (affine Lucas-Kanade from the matched corner, ``PatchAligner``), and which
+        are precise. A corner is found on the ``detect_scale`` grid, up to a pixel from
+        where a track put the point; aligned, a match is as precise as a track, and one
+        that does not align (another corner like it, a view too different) is not taken.
+        A point without a patch (a map file's, or tracks without alignment) is taken at
+        its corner, as precise as its map can say."""
+        have = np.array([int(t) in patches for t in ids], dtype=bool)
+        if self._aligner is None or not have.any():
+            return pixels, ~have
+        self._aligner.reset()
+        self._aligner.add_patches(ids[have], np.array([patches[int(t)] for t in ids[have]], np.float32))
+        refined, aligned = self._aligner.refine(np.asarray(image, np.float32), ids, pixels)
+        return refined, aligned | ~have
+
     def _reference(self, world_map: Map) -> tuple[np.ndarray, ...]:
         """The loaded map's described points: ids, positions, the describing keyframe's
         camera centre, descriptors. Kept per map: a
@@ -186,10 +213,15 @@ class Relocaliser:
         closure: a place seen long ago, not the points being tracked)."""
         o = self.options
         known: dict[int, np.ndarray] = {}
+        patches: dict[int, np.ndarray] = {}
         for kf in world_map.keyframes.values() if among is None else among:  # newest last: its descriptor wins
-            for point_id, descriptor in zip(kf.descriptor_ids, kf.descriptors, strict=True):
+            for k, (point_id, descriptor) in enumerate(zip(kf.descriptor_ids, kf.descriptors, strict=True)):
                 if int(point_id) in world_map.points and (excluding is None or int(point_id) not in excluding):
                     known[int(point_id)] = descriptor
+                    if kf.patches is not None:
+                        patches[int(point_id)] = kf.patches[k]
+                    else:
+                        patches.pop(int(point_id), None)
         if len(known) < o.reloc_min_inliers:
             return None
         map_ids = np.array(list(known), dtype=np.int64)
@@ -210,6 +242,7 @@ class Relocaliser:
         query = np.array([best[t][1] for t in train], dtype=np.int64)
         pixels = at[query]
         ids = map_ids[train]
+        pixels, precise = self._aligned(image, ids, pixels, patches)
         obj = np.array([world_map.points[int(i)] for i in ids])
         xn = undistort(pixels, self.calibration)
         threshold = o.reloc_reproj_px / self.calibration.fx
@@ -218,10 +251,17 @@ class Relocaliser:
         if found is None or len(found[2]) < o.reloc_min_inliers:
             return None
         rvec, tvec, inl = found
+        # the pose, the tracks followed on and the keyframe made here from the matches as
+        # precise as tracks (a corner's pixel, a pixel off, in bundle adjustment beside
+        # tracks 0.05 px off: its points cut as outliers, the map then rebuilt on the
+        # relocalised poses alone and running away, blank_wall 22 mm -> 2 m RMS)
+        inl = inl[precise[inl]]
+        if len(inl) < o.reloc_min_inliers:
+            return None
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], xn[inl], np.eye(3), None, rvec.reshape(3, 1), tvec.reshape(3, 1))
         T_camera_world = Transform.from_rvec_tvec(rvec, tvec)
         proj, z = project_normalised(T_camera_world, obj)
-        good = (z > 0) & (np.linalg.norm(proj - xn, axis=1) <= threshold)
+        good = (z > 0) & (np.linalg.norm(proj - xn, axis=1) <= threshold) & precise
         pose = T_camera_world.inverse()
         if good.sum() < o.reloc_min_inliers or not np.all(np.isfinite(pose.matrix())):
             return None
