@@ -81,13 +81,14 @@ class PatchAligner:
         self.add_patches(ids, self.patches(image, pixels))
 
     def patches(self, image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-        """The image around each of ``pixels`` (N, 2) as ``add_patches`` takes it: (N, S, S)
-        float32, S = 2 ``radius_px`` + 3 (the template and a pixel more for its gradients)."""
+        """The image around each of ``pixels`` (N, 2) as ``add_patches`` takes it: (N, S, S),
+        S = 2 ``radius_px`` + 3 (the template and a pixel more for its gradients), of the
+        image's own type (a uint8 image gives samples rounded to whole grey levels, and
+        needs no float copy of the whole image)."""
         pixels = np.asarray(pixels, np.float32).reshape(-1, 2)
         if len(pixels) == 0:
-            return np.zeros((0, self._side, self._side), np.float32)
-        wide = _sample(np.asarray(image, np.float32), pixels[:, :1] + self._wide[:, 0],
-                       pixels[:, 1:] + self._wide[:, 1])
+            return np.zeros((0, self._side, self._side), image.dtype)
+        wide = _sample(image, pixels[:, :1] + self._wide[:, 0], pixels[:, 1:] + self._wide[:, 1])
         return wide.reshape(-1, self._side, self._side)
 
     def add_patches(self, ids: np.ndarray, wide: np.ndarray) -> None:

@@ -67,7 +67,8 @@ class Relocaliser:
 
     def describe(self, image: np.ndarray, keyframe: Keyframe, world_map: Map, ids: np.ndarray,
                  pixels: np.ndarray) -> None:
-        """Store on ``keyframe`` the ORB descriptors of its tracks that have map points."""
+        """Store on ``keyframe`` the ORB descriptors of its tracks that have map points, and
+        the image patch around each (what a match is aligned to)."""
         has = world_map.mapped(ids)
         if not has.any():
             return
@@ -78,7 +79,7 @@ class Relocaliser:
         keyframe.descriptors = descriptors
         if self._aligner is not None:
             at = np.array([k.pt for k in keypoints], dtype=np.float32)
-            keyframe.patches = np.clip(np.rint(self._aligner.patches(image, at)), 0, 255).astype(np.uint8)
+            keyframe.patches = self._aligner.patches(image, at)  # uint8, as the image
 
     def refind(self, image: np.ndarray, world_map: Map, pose: Transform, tracked: np.ndarray) -> Refound:
         """A loaded map's points (the reference, ``world_map.fixed``) found again in
