@@ -91,8 +91,7 @@ class MotionModel:
         else:
             self.velocity = velocity(self.last, pose, dt)
             if not held:
-                both = [c for c in (previous, own) if c is not None]
-                self.velocity_covariance = sum(both) / dt**2 if both else None
+                self.velocity_covariance = velocity_covariance(previous, own, dt)
         self.after_relocalisation = noisy
         self.last, self.stamp = pose, stamp_ns
 
@@ -116,11 +115,11 @@ class MotionModel:
             if 0.0 < dt <= self.options.max_extrapolation_s:
                 expected = before if self.velocity is None else self.extrapolated(before, dt)
                 if self.velocity is None or beyond_motion(pose, expected, self.options):
-                    unknown = self.velocity is None
+                    # lost, the pose before is a relocalisation's, as unsure as its match
+                    previous = self.own if self.velocity is None else None
                     self.velocity = velocity(before, pose, dt)
-                    both = [np.asarray(c, np.float64)[:3, :3] for c in ((self.own if unknown else None), own)
-                            if c is not None]
-                    self.velocity_covariance = sum(both) / dt**2 if both else None
+                    self.velocity_covariance = velocity_covariance(
+                        previous, None if own is None else np.asarray(own, np.float64)[:3, :3], dt)
         self.own = None if own is None else np.asarray(own, np.float64)[:3, :3]
         self.measured = (pose, stamp_ns)
         self.last, self.stamp, self.covariance = pose, stamp_ns, covariance
@@ -178,6 +177,14 @@ class MotionModel:
             covariance[:3, :3] += self.velocity_covariance * t * t
         covariance[3:, 3:] = np.eye(3) * (0.5 * o.coast_angular_accel_rad_s2 * t * t) ** 2
         return prediction, covariance
+
+
+def velocity_covariance(a: np.ndarray | None, b: np.ndarray | None, dt: float) -> np.ndarray | None:
+    """The covariance (3, 3, per second squared) of a velocity measured over ``dt`` seconds
+    between two positions with covariances ``a`` and ``b`` (None: not known, left out);
+    None when neither is known."""
+    both = [c for c in (a, b) if c is not None]
+    return sum(both) / dt**2 if both else None
 
 
 def velocity(a: Transform, b: Transform, dt: float) -> tuple[np.ndarray, np.ndarray]:
