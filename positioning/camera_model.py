@@ -15,6 +15,9 @@ independent optics on purpose: it is the ground truth.
 * ``undistort(pixels)``: normalised coordinates of the rays; ``distort(normalised)``
   back to pixels; ``outline_pixels(normalised)`` for a coarse outline, finite anywhere;
 * ``project_normalised(T_camera_world, points_world)``: normalised projections and depths;
+* ``normalised_jacobian(points_camera, depth, scale)``: d(scale (x / z, y / z)) / d(x, y, z),
+  the pinhole part the tracker's pose fit and bundle adjustment work in (each decides
+  how a depth near zero is clamped, and passes it);
 * ``solver_pixels(pixels, calibration)``: pixels, camera matrix and distortion to give
   OpenCV's PnP solvers, which know the pinhole models only (a fisheye's pixels go as the
   pixels of a pinhole camera with the same camera matrix);
@@ -169,6 +172,16 @@ def project_normalised(T_camera_world: Transform, points_world: np.ndarray) -> t
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = p[:, :2] / z[:, None]
     return xy, z
+
+
+def normalised_jacobian(points_camera: np.ndarray, depth: np.ndarray, scale: float) -> np.ndarray:
+    """(N, 2, 3): d(scale * (x / z, y / z)) / d(x, y, z) of camera-frame points (N, 3), with
+    ``depth`` (N,) their z as the caller clamps it away from zero."""
+    out = np.zeros((len(points_camera), 2, 3))
+    out[:, 0, 0] = out[:, 1, 1] = scale / depth
+    out[:, 0, 2] = -scale * points_camera[:, 0] / depth**2
+    out[:, 1, 2] = -scale * points_camera[:, 1] / depth**2
+    return out
 
 
 def _project_with_jacobian(points, camera_matrix, d):

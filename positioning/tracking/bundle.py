@@ -41,6 +41,7 @@ from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
+from cubeloc.positioning.camera_model import normalised_jacobian
 from cubeloc.positioning.geometry import Transform, robust_sigma, skew
 from cubeloc.positioning.tracking import schur_lm
 from cubeloc.positioning.tracking.floor import Floor, FloorRows, on_the_floor
@@ -429,13 +430,8 @@ def _jacobian_blocks(problem: BundleProblem, deltas: np.ndarray, rotations: np.n
 
 
 def _projection_jacobian(pc: np.ndarray, scale: float) -> np.ndarray:
-    """(N, 2, 3): d(scale * (x / z, y / z)) / d(x, y, z)."""
-    z = np.where(np.abs(pc[:, 2]) < 1e-9, 1e-9, pc[:, 2])
-    out = np.zeros((len(pc), 2, 3))
-    out[:, 0, 0] = out[:, 1, 1] = scale / z
-    out[:, 0, 2] = -scale * pc[:, 0] / z**2
-    out[:, 1, 2] = -scale * pc[:, 1] / z**2
-    return out
+    """(N, 2, 3): d(scale * (x / z, y / z)) / d(x, y, z), z clamped as the residuals clamp it."""
+    return normalised_jacobian(pc, np.where(np.abs(pc[:, 2]) < 1e-9, 1e-9, pc[:, 2]), scale)
 
 
 def _pose_block(d_pc: np.ndarray, rotated: np.ndarray, left: np.ndarray) -> np.ndarray:

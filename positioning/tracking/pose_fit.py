@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from cubeloc.positioning.camera_model import project_normalised
+from cubeloc.positioning.camera_model import normalised_jacobian, project_normalised
 from cubeloc.positioning.geometry import Transform, robust_sigma, skew
 
 if TYPE_CHECKING:
@@ -189,11 +189,7 @@ def _projection(camera: np.ndarray, fx: float) -> tuple[np.ndarray, np.ndarray, 
     pixels (N, 2, 3) and the depths (N,) (clamped away from zero for the division)."""
     z = camera[:, 2]
     safe = np.where(z > 1e-6, z, 1e-6)
-    proj = np.zeros((len(camera), 2, 3))
-    proj[:, 0, 0] = proj[:, 1, 1] = fx / safe
-    proj[:, 0, 2] = -fx * camera[:, 0] / safe**2
-    proj[:, 1, 2] = -fx * camera[:, 1] / safe**2
-    return camera[:, :2] / safe[:, None], proj, z
+    return camera[:, :2] / safe[:, None], normalised_jacobian(camera, safe, fx), z
 
 
 def _blocks(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray, xn: np.ndarray, fx: float):
