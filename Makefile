@@ -49,9 +49,17 @@ install: $(STAMPS)/install
 lint: install
 	$(BIN)/ruff check .
 
+# The GigE Vision fake's tests run one at a time (tests/conftest.py), mostly waiting on the
+# network: alongside the rest, in a namespace of their own (its loopback is not the other's),
+# their output shown when both are done.
 test: lint
-	$(LOOPBACK) $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake'
-	$(LOOPBACK) $(BIN)/python -m pytest -q -m gv_fake
+	@echo "$(LOOPBACK) $(BIN)/python -m pytest -q -p no:cacheprovider -m gv_fake > $(STAMPS)/gv_fake.log &"; \
+	$(LOOPBACK) $(BIN)/python -m pytest -q -p no:cacheprovider -m gv_fake > $(STAMPS)/gv_fake.log 2>&1 & gv=$$!; \
+	trap 'kill $$gv 2>/dev/null' INT TERM; \
+	echo "$(LOOPBACK) $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake'"; \
+	$(LOOPBACK) $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m 'not gv_fake'; rest=$$?; \
+	wait $$gv; gv_rc=$$?; echo "-- gv_fake tests ($(STAMPS)/gv_fake.log):"; cat $(STAMPS)/gv_fake.log; \
+	exit $$(( rest || gv_rc ))
 
 # The edit-test loop: the tests of the suite under 1 s each (tests/slow_tests.txt lists the rest)
 test-fast: install

@@ -31,6 +31,7 @@ from cubeloc.fakes.room import Room, box_quads, default_room, room_atlas
 from cubeloc.fakes.scene import target_quads
 from cubeloc.fakes.surfaces import Quad, QuadInCamera
 from cubeloc.positioning.geometry import Transform
+from cubeloc.positioning.jit import compiled
 from cubeloc.positioning.target import Target, make_cube
 
 SAMPLE_BUDGET = 1_500_000  # sub-pixel samples of edge pixels per object, when supersample is None
@@ -100,46 +101,73 @@ def sample_rays(calibration: CameraCalibration, box: PixelBox) -> tuple[np.ndarr
 
 
 def shade_room(room: Room, T_world_camera: Transform, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Radiance of the room's walls along rays (x, y, 1); the camera is inside the room.
+    """Radiance of the room's walls along rays (x, y, 1) ((H, W) float32 each); the camera
+    is inside the room.
 
     The camera is inside a convex box, so every ray leaves through exactly one wall: the
-    one with the smallest exit distance along the ray. (Written for few passes over the
-    frame: this is most of the time of a frame.)
+    one with the smallest exit distance along the ray. Its wall coordinates come from one
+    compiled pass over the rays (``_room_coordinates``), the radiance from one ``cv2.remap``
+    of the wall atlas: this is most of the time of a frame.
     """
     atlas = room_atlas(room)
-    r = T_world_camera.rotation.astype(np.float32)
     c = T_world_camera.translation
-    lower, upper = room.lower, room.upper
     f32 = np.float32
-    d = [r[k, 0] * x + r[k, 1] * y + r[k, 2] for k in range(3)]  # world ray directions
-    exits = []
-    with np.errstate(divide="ignore"):
-        for k in range(3):
-            inverse = f32(1.0) / d[k]
-            # the wall ahead is the positive one of the two distances (+inf for d = 0)
-            exits.append(np.maximum(inverse * f32(upper[k] - c[k]), inverse * f32(lower[k] - c[k])))
-    depth = np.minimum(np.minimum(exits[0], exits[1]), exits[2])
-    on_x = exits[0] == depth
-    on_z = exits[2] == depth
-    on_z &= ~on_x
-    # wall coordinates (u, v) of the hit: x walls (y, z), y walls (x, z), z walls (x, y)
-    u = np.where(on_x, d[1], d[0])
-    u *= depth
-    u += np.where(on_x, f32(c[1]), f32(c[0]))
-    v = np.where(on_z, d[1], d[2])
-    v *= depth
-    v += np.where(on_z, f32(c[1]), f32(c[2]))
-    # wall index 2 * axis + (1 on the upper wall), as in fakes.room
-    upper_side = np.where(on_x, d[0], np.where(on_z, d[2], d[1])) > 0
-    wall = on_z.view(np.uint8) * np.uint8(4)
-    wall += (~(on_x | on_z)).view(np.uint8) * np.uint8(2)
-    wall += upper_side.view(np.uint8)
-    inv_texel = f32(1.0 / atlas.texel_m)
-    u *= inv_texel
-    u += atlas.offset_x[wall]
-    v *= inv_texel
-    v += atlas.offset_y[wall]
+    # per axis: the distances to its upper and lower wall, and the camera's coordinate
+    walls = np.array([[room.upper[k] - c[k], room.lower[k] - c[k], c[k]] for k in range(3)]).astype(f32)
+    x, y = np.ascontiguousarray(x, f32), np.ascontiguousarray(y, f32)
+    u, v = _compiled_room()(x, y, T_world_camera.rotation.astype(f32), walls, f32(1.0 / atlas.texel_m),
+                            atlas.offset_x, atlas.offset_y)
     return _remap_any_shape(atlas.image, u, v)
+
+
+def _room_coordinates(x, y, r, walls, inv_texel, offset_x, offset_y):
+    """Atlas coordinates (u, v) of the wall each ray (x, y, 1) of the camera rotated by ``r``
+    meets first, float32 throughout in the order numpy would take it.
+
+    Per axis k the ray's exit distance is the positive one of (wall - c[k]) / d[k] over
+    its two walls (+inf for d[k] = 0); the smallest over the axes is the wall it meets.
+    Wall coordinates: x walls (y, z), y walls (x, z), z walls (x, y); wall index
+    2 * axis + (1 on the upper wall), as in fakes.room.
+    """
+    height, width = x.shape
+    u = np.empty((height, width), np.float32)
+    v = np.empty((height, width), np.float32)
+    one, zero = np.float32(1.0), np.float32(0.0)
+    for i in range(height):
+        for j in range(width):
+            xx, yy = x[i, j], y[i, j]
+            d0 = r[0, 0] * xx + r[0, 1] * yy + r[0, 2]
+            d1 = r[1, 0] * xx + r[1, 1] * yy + r[1, 2]
+            d2 = r[2, 0] * xx + r[2, 1] * yy + r[2, 2]
+            # numpy's maximum and minimum, where nan wins
+            a, b = one / d0 * walls[0, 0], one / d0 * walls[0, 1]
+            e0 = a if a != a or a >= b else b
+            a, b = one / d1 * walls[1, 0], one / d1 * walls[1, 1]
+            e1 = a if a != a or a >= b else b
+            a, b = one / d2 * walls[2, 0], one / d2 * walls[2, 1]
+            e2 = a if a != a or a >= b else b
+            depth = e0 if e0 != e0 or e0 <= e1 else e1
+            depth = depth if depth != depth or depth <= e2 else e2
+            on_x = e0 == depth
+            on_z = e2 == depth and not on_x
+            if on_x:
+                uu, upper = d1 * depth + walls[1, 2], d0 > zero
+            else:
+                uu, upper = d0 * depth + walls[0, 2], (d2 if on_z else d1) > zero
+            vv = d1 * depth + walls[1, 2] if on_z else d2 * depth + walls[2, 2]
+            wall = (4 if on_z else (0 if on_x else 2)) + (1 if upper else 0)
+            u[i, j] = uu * inv_texel + offset_x[wall]
+            v[i, j] = vv * inv_texel + offset_y[wall]
+    return u, v
+
+
+def _warm_up_room() -> None:
+    f32 = np.float32
+    _compiled_room()(np.zeros((1, 1), f32), np.zeros((1, 1), f32), np.eye(3, dtype=f32), np.ones((3, 3), f32),
+                     f32(1.0), np.zeros(6, f32), np.zeros(6, f32))
+
+
+_compiled_room = compiled(_room_coordinates, _warm_up_room, exact=True)  # see positioning/jit.py
 
 
 def _remap_any_shape(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:

@@ -25,22 +25,25 @@ FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 KERNELS: list[tuple[Callable[[], Callable], Callable[[], object]]] = []  # (kernel, its warm-up), by import
 
 
-def compiled(function: Callable, warm_up: Callable[[], object]) -> Callable[[], Callable]:
+def compiled(function: Callable, warm_up: Callable[[], object], exact: bool = False) -> Callable[[], Callable]:
     """A function returning ``function`` compiled (once a process: compiled or loaded from
     the disk cache on the first call). ``warm_up()`` runs the kernel once on tiny inputs
     through its module's own wrapper, so with the argument types of real use (another
-    signature would compile again, on a live frame)."""
+    signature would compile again, on a live frame). ``exact``: IEEE arithmetic in the
+    written order, and numpy's division (x / 0 is inf or nan, not an exception), for a
+    kernel that must give the same bits as the numpy it stands for."""
+    options = {"fastmath": False, "error_model": "numpy"} if exact else {"fastmath": FASTMATH}
 
     @functools.cache
     def kernel():
         import numba  # imported on first use: ~0.6 s
 
         try:
-            return numba.njit(cache=True, nogil=True, fastmath=FASTMATH)(function)
+            return numba.njit(cache=True, nogil=True, **options)(function)
         except RuntimeError as error:  # no writable cache folder
             warnings.warn(f"{function.__module__}.{function.__name__} compiled without a disk cache ({error}); "
                           "set NUMBA_CACHE_DIR to a writable folder to start faster", RuntimeWarning, stacklevel=3)
-            return numba.njit(cache=False, nogil=True, fastmath=FASTMATH)(function)
+            return numba.njit(cache=False, nogil=True, **options)(function)
 
     KERNELS.append((kernel, warm_up))
     return kernel

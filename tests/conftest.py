@@ -55,7 +55,8 @@ def cli():
 
 # Aravis' GigE Vision fake camera must own 127.0.0.1:3956 (GVCP), so at most one may run
 # on the machine. Every test of a module that starts one is marked ``gv_fake``: ``make
-# test`` runs the rest on both cores (pytest-xdist) and these afterwards, one at a time.
+# test`` runs the rest on both cores (pytest-xdist) and, alongside them in a network
+# namespace of its own, these one at a time.
 # (xdist's own ``--dist loadgroup`` does not group with pytest 9.2: it renames
 # ``item._nodeid``, which pytest no longer reads.)
 GV_FAKE_MARKERS = ("gv_fake", "GvFake")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 import time
 
 # fakes.trajectories.TRAJECTORIES, spelled out so that --help needs no numpy import
@@ -54,18 +55,24 @@ def run(args) -> int:
     started = time.monotonic()
     interactive = sys.stderr.isatty()
 
+    stop = threading.Event()
+
     def progress(done: int, total: int) -> None:
+        # a signal stops the render between two frames, as a KeyboardInterrupt, which removes
+        # the half-written sequence (raised inside a compiled kernel's call by the handler, it
+        # would come out as a SystemError)
+        if stop.is_set():
+            raise KeyboardInterrupt
         if interactive and (done % 10 == 0 or done == total):
             print(f"\rrendered {done}/{total} frames", end="" if done < total else "\n", file=sys.stderr, flush=True)
 
-    def terminated(signum, _frame) -> None:
-        raise KeyboardInterrupt  # SIGTERM as Ctrl-C: the half-written sequence is removed
-
-    previous = signal.signal(signal.SIGTERM, terminated)
+    # SIGTERM as Ctrl-C, each at the end of the frame being rendered
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         summary = _simulate(args, progress)
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     elapsed = time.monotonic() - started
     print(
         f"wrote {summary.frames} frames ({summary.seconds:.1f} s of {summary.trajectory}) to {summary.path} "
