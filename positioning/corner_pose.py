@@ -36,7 +36,7 @@ class TargetPose:
     tvec: np.ndarray | None = None
     points_world: np.ndarray | None = None  # (4N, 3) corners used
     # (6, 6) the share of ``covariance`` that the frames of a still scene have in common (every
-    # edge found off its place alike: ``edge_alignment.EDGE_BIAS_PER_BLUR``): it is in the
+    # edge found off its place alike: ``EdgeOptions.edge_bias_per_blur``): it is in the
     # error against the truth, not in the scatter from frame to frame; None: no such share
     systematic_covariance: np.ndarray | None = None
 

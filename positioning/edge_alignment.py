@@ -32,33 +32,53 @@ from cubeloc.positioning.step_profiles import step_positions
 from cubeloc.positioning.tag_bits import grid_to_world, tag_edges
 from cubeloc.positioning.target import Target
 
-PROFILE_STEP_PX = 0.5
-MIN_PROFILE_SIGMA_PX = 0.01  # floor on the profile noise used for the covariance
-# Every edge of an image may be found off its place towards one side, by an amount the
-# profiles' noise does not show and the fit cannot tell from the pose: a blurred step
-# through a non-linear response (a camera's gamma of 0.8-1.25 moves it by 0.06-0.14 of the
-# blur's sigma, depending on the levels), ink spread. Its standard deviation is taken as
-# EDGE_BIAS_PER_BLUR of the steps' measured spread (``EdgeFit.blur_px``, which includes the
-# pixels' own ~0.5 px): 0.04 px on a sharp image, 0.07-0.1 px at 0.8-1.5 px of defocus.
-# Each tag's edges move apart from the others' by TAG_BIAS_SHARE of that besides (a face's
-# own light and ink). Checked on the range map's views through a gamma of 0.8 or 1.25
-# (``python -m bench target_nees``, docs/benchmarks.md).
-EDGE_BIAS_PER_BLUR = 0.08
-TAG_BIAS_SHARE = 0.5
-# The corners' RMS about the aligned pose on a sharp image (measured 0.02-0.05 px on the
-# synthetic camera at noise sigma 2, slow frames of agile); more is blur or a bad image
-SHARP_CORNER_RMS_PX = 0.05
-END_MARGIN_CELLS = 0.3  # profiles keep this far from a run's ends (perpendicular edges)
-PROFILE_HALF_CELLS = 0.4  # profiles reach this far into the cells on each side
-MAX_HALF_WIDTH_PX = 4.0
-MIN_HALF_WIDTH_PX = 1.25  # cells under ~3 px: the edges blur into each other
-MIN_CONTRAST = 25.0  # grey levels between the black and the white side
-MIN_PROFILE_COSINE = 0.3  # profiles further than 73 deg off the edge's image normal are left out
-MAX_VIEW_ANGLE_DEG = 75.0  # tags seen more obliquely give poor edges
-ITERATIONS = 2
-PIXELS_PER_PROFILE = 2.0
-SAMPLES_PER_CELL = (2, 8)
-MIN_PROFILES = 40
+
+@dataclass(frozen=True)
+class EdgeOptions:
+    """How a target's cell edges are measured (``measure_edges``), a pose aligned to them
+    (``align_to_edges``) and the aligned pose's covariance claimed (``EdgeFit.covariances``,
+    ``refine_pose_on_edges``). ``PoseOptions.edges`` carries them."""
+
+    # profiles: sampled every profile_step_px, from profile_half_cells into the cell on one
+    # side to as far into the other, within [min_half_width_px, max_half_width_px] each way
+    # (cells under ~3 px: the edges blur into each other); none nearer a run's ends than
+    # end_margin_cells (the perpendicular edges)
+    profile_step_px: float = 0.5
+    profile_half_cells: float = 0.4
+    max_half_width_px: float = 4.0
+    min_half_width_px: float = 1.25
+    end_margin_cells: float = 0.3
+    min_contrast: float = 25.0  # grey levels between the black and the white side
+    min_profile_cosine: float = 0.3  # profiles further than 73 deg off the edge's image normal are left out
+    max_view_angle_deg: float = 75.0  # tags seen more obliquely give poor edges
+    # a profile every pixels_per_profile pixels along the edges, samples_per_cell (low, high)
+    # along a cell's length at most and at least
+    pixels_per_profile: float = 2.0
+    samples_per_cell: tuple[int, int] = (2, 8)
+    min_profiles: int = 40  # fewer measured: no alignment
+    iterations: int = 2  # Gauss-Newton steps, each measuring every profile afresh
+    min_profile_sigma_px: float = 0.01  # floor on the profile noise used for the covariance
+    # Every edge of an image may be found off its place towards one side, by an amount the
+    # profiles' noise does not show and the fit cannot tell from the pose: a blurred step
+    # through a non-linear response (a camera's gamma of 0.8-1.25 moves it by 0.06-0.14 of
+    # the blur's sigma, depending on the levels), ink spread. Its standard deviation is
+    # edge_bias_per_blur of the steps' measured spread (``EdgeFit.blur_px``, which includes
+    # the pixels' own ~0.5 px): 0.04 px on a sharp image, 0.07-0.1 px at 0.8-1.5 px of
+    # defocus. Each tag's edges move apart from the others' by tag_bias_share of that
+    # besides (a face's own light and ink). Checked on the range map's views through a gamma
+    # of 0.8 or 1.25 (``python -m bench target_nees``, docs/benchmarks.md).
+    edge_bias_per_blur: float = 0.08
+    tag_bias_share: float = 0.5
+    # The corners' RMS about the aligned pose on a sharp image (0.02-0.05 px on the
+    # synthetic camera at noise sigma 2, slow frames of agile); more is blur or a bad image.
+    # A camera's own: the 10th percentile of its last sharp_history_frames steady frames,
+    # once there are sharp_min_frames, never below this (``TargetObserver``).
+    sharp_corner_rms_px: float = 0.05
+    sharp_history_frames: int = 100
+    sharp_min_frames: int = 10
+
+
+EDGES = EdgeOptions()  # the defaults
 
 
 @dataclass(frozen=True)
@@ -77,20 +97,23 @@ _MODELS: dict[tuple, EdgeModel] = {}
 _MODEL_CACHE_SIZE = 64
 
 
-def edge_model(target: Target, tag_ids: tuple[int, ...], samples_per_cell: int) -> EdgeModel:
-    """Edge samples of the given tags, ``samples_per_cell`` along each cell length
-    (cached: a target's tags do not move, and building the model costs milliseconds)."""
-    key = (target.family, target.border_bits, samples_per_cell,
+def edge_model(target: Target, tag_ids: tuple[int, ...], samples_per_cell: int,
+               end_margin_cells: float = EDGES.end_margin_cells) -> EdgeModel:
+    """Edge samples of the given tags, ``samples_per_cell`` along each cell length, none
+    nearer a run's ends than ``end_margin_cells`` (cached: a target's tags do not move, and
+    building the model costs milliseconds)."""
+    key = (target.family, target.border_bits, samples_per_cell, end_margin_cells,
            tuple((i, target.tag(i).corners.tobytes()) for i in tag_ids))
     model = _MODELS.get(key)
     if model is None:
         if len(_MODELS) >= _MODEL_CACHE_SIZE:
             _MODELS.pop(next(iter(_MODELS)))
-        model = _MODELS[key] = _build_edge_model(target, tag_ids, samples_per_cell)
+        model = _MODELS[key] = _build_edge_model(target, tag_ids, samples_per_cell, end_margin_cells)
     return model
 
 
-def _build_edge_model(target: Target, tag_ids: tuple[int, ...], samples_per_cell: int) -> EdgeModel:
+def _build_edge_model(target: Target, tag_ids: tuple[int, ...], samples_per_cell: int,
+                      end_margin_cells: float) -> EdgeModel:
     points, tangents, normals, cell_m, tag_index, run_index = [], [], [], [], [], []
     run_base = 0
     for index, tag_id in enumerate(tag_ids):
@@ -104,9 +127,9 @@ def _build_edge_model(target: Target, tag_ids: tuple[int, ...], samples_per_cell
             start, end = edges.start[k], edges.end[k]
             length = float(np.abs(end - start).sum())
             along = (end - start) / length
-            usable = length - 2 * END_MARGIN_CELLS
+            usable = length - 2 * end_margin_cells
             count = max(2, int(round(usable * samples_per_cell)))
-            t = END_MARGIN_CELLS + (np.arange(count) + 0.5) * (usable / count)
+            t = end_margin_cells + (np.arange(count) + 0.5) * (usable / count)
             grid = start + t[:, None] * along
             points.append(grid_to_world(c, n, grid))
             tangent = along[0] * right + along[1] * down
@@ -141,28 +164,28 @@ class EdgeFit:
     def tvec(self) -> np.ndarray:
         return self.translation
 
-    def covariances(self, min_sigma_px: float = MIN_PROFILE_SIGMA_PX) -> tuple[np.ndarray, np.ndarray]:
+    def covariances(self, options: EdgeOptions = EDGES) -> tuple[np.ndarray, np.ndarray]:
         """6x6 covariances of T_world_camera (ROS order: position, world rotation): the
         noise's (the profiles and the corners fitted with them), and the systematic share,
-        what the edges' shift towards their white side (``EDGE_BIAS_PER_BLUR``) moves the
+        what the edges' shift towards their white side (``edge_bias_per_blur``) moves the
         pose by: all of them alike, and each tag's apart (its own levels and ink) by
-        ``TAG_BIAS_SHARE`` of that.
+        ``tag_bias_share`` of that.
 
         With X_c' = exp(omega) X_c + delta_t, the camera position moves by -R^T delta_t
         and the world-frame rotation by -R^T omega (to first order)."""
         dof = max(self.residuals_px.size - 6, 1)
-        sigma2 = max(float(np.sum(self.residuals_px**2)) / dof, min_sigma_px**2)
+        sigma2 = max(float(np.sum(self.residuals_px**2)) / dof, options.min_profile_sigma_px**2)
         if self.corner_information.any():
             noise = np.linalg.pinv(self.jacobian.T @ self.jacobian / sigma2 + self.corner_information)
         else:
             noise = sigma2 * np.linalg.pinv(self.jacobian.T @ self.jacobian)
-        # J^T of a unit shift of every profile, and of each tag's (by TAG_BIAS_SHARE)
+        # J^T of a unit shift of every profile, and of each tag's (by tag_bias_share)
         shifts = [self.jacobian.sum(axis=0)[None]]
         if self.tags is not None:
             each = (self.tags[:, None] == np.unique(self.tags)[None]).astype(np.float64)  # (K, tags)
-            shifts.append(TAG_BIAS_SHARE * (self.jacobian.T @ each).T)
+            shifts.append(options.tag_bias_share * (self.jacobian.T @ each).T)
         moved = noise @ np.vstack(shifts).T / sigma2  # (6, groups): the pose's move for each shift
-        systematic = (EDGE_BIAS_PER_BLUR * self.blur_px) ** 2 * moved @ moved.T
+        systematic = (options.edge_bias_per_blur * self.blur_px) ** 2 * moved @ moved.T
         g = np.zeros((6, 6))
         g[:3, 3:] = -self.rotation.T
         g[3:, :3] = -self.rotation.T
@@ -286,7 +309,7 @@ def _warm_up() -> None:  # through measure_edges, on a tag's worth of synthetic 
     from cubeloc.calib.camera_info import CameraCalibration
 
     rng = np.random.default_rng(0)
-    count = MIN_PROFILES
+    count = EDGES.min_profiles
     model = EdgeModel(np.column_stack([rng.uniform(-0.05, 0.05, (count, 2)), np.ones(count)]),
                       np.tile([1.0, 0.0, 0.0], (count, 1)), np.tile([0.0, 1.0, 0.0], (count, 1)),
                       np.full(count, 0.01), np.zeros(count, np.int64), np.zeros(count, np.int64))
@@ -299,7 +322,7 @@ _compiled_offsets = compiled(_offsets, lambda: None)  # warmed up with the layou
 
 
 def measure_edges(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, translation: np.ndarray,
-                  calibration: CameraCalibration, spread: bool = False):
+                  calibration: CameraCalibration, spread: bool = False, options: EdgeOptions = EDGES):
     """Offsets (pixels along the projected edge's normal) of the image's steps from the
     model's projected edges, with their Jacobian for the left perturbation of the pose;
     profiles that are not clean single steps are left out. Returns (offsets (K,),
@@ -313,13 +336,13 @@ def measure_edges(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, tra
     pixels, point_j = project_with_jacobian(points, calibration)
     index, starts, deltas, steps, scale, shift, normals = _compiled_layout()(
         pixels, point_j, read_only(model.tangents @ rotation.T), read_only(model.normals @ rotation.T),
-        read_only(model.cell_m, np.float64), calibration.width, calibration.height, PROFILE_HALF_CELLS,
-        MAX_HALF_WIDTH_PX, MIN_HALF_WIDTH_PX, PROFILE_STEP_PX, MIN_PROFILE_COSINE)
-    if len(index) < MIN_PROFILES:
+        read_only(model.cell_m, np.float64), calibration.width, calibration.height, options.profile_half_cells,
+        options.max_half_width_px, options.min_half_width_px, options.profile_step_px, options.min_profile_cosine)
+    if len(index) < options.min_profiles:
         return None
     # Profiles from the black cell to the white one, 2 * steps + 1 samples each.
     runs = model.run_index[index]
-    found = step_positions(image, starts, deltas, 2 * steps + 1, runs, int(runs.max()) + 1, MIN_CONTRAST,
+    found = step_positions(image, starts, deltas, 2 * steps + 1, runs, int(runs.max()) + 1, options.min_contrast,
                            spread=spread)
     position, good, clean = found[:3]
     spreads = found[3] if spread else np.zeros(len(position))
@@ -330,19 +353,20 @@ def measure_edges(image: np.ndarray, model: EdgeModel, rotation: np.ndarray, tra
 
 def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibration, tag_ids: tuple[int, ...],
                    rvec: np.ndarray, tvec: np.ndarray, iterations: int | None = None,
-                   samples_per_cell: int | None = None, corners: Corners | None = None) -> EdgeFit | None:
+                   samples_per_cell: int | None = None, corners: Corners | None = None,
+                   options: EdgeOptions = EDGES) -> EdgeFit | None:
     """The pose (solver convention: T_camera_world as rvec, tvec) aligned to the edges of
     ``tag_ids`` in ``image``; None when too few edges could be measured. Each iteration
     measures every profile afresh at the current pose and takes one Gauss-Newton step.
 
     Where every edge measured runs one way (the cells across them foreshortened below
-    MIN_HALF_WIDTH_PX in an oblique view) the pose slides along them unseen: the normal
+    ``min_half_width_px`` in an oblique view) the pose slides along them unseen: the normal
     equations are singular. There, and only there, ``corners`` are fitted with the edges,
     each set weighed by its own noise (the edges' step alone moved the pose by noise along
     that direction: 30 mm on 752x480 boards). Wherever the edges measure the whole pose
     they are fitted alone: the corners, biased by blur, would pull the directions the
     edges measure weakly their way (a two-face cube at 640x512: 1.3 -> 1.7 mm median)."""
-    iterations = ITERATIONS if iterations is None else iterations
+    iterations = options.iterations if iterations is None else iterations
     rotation = rotation_from_rvec(rvec)
     translation = np.asarray(tvec, np.float64).reshape(3).copy()
     camera_in_world = -rotation.T @ translation
@@ -350,18 +374,18 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
     for tag_id in tag_ids:
         tag = target.tag(tag_id)
         sight = camera_in_world - tag.center
-        if float(tag.normal @ sight) >= np.cos(np.radians(MAX_VIEW_ANGLE_DEG)) * float(np.linalg.norm(sight)):
+        if float(tag.normal @ sight) >= np.cos(np.radians(options.max_view_angle_deg)) * float(np.linalg.norm(sight)):
             kept.append(tag_id)
     if not kept:
         return None
     if samples_per_cell is None:
-        # A profile every PIXELS_PER_PROFILE pixels along the edges, within limits.
+        # A profile every pixels_per_profile pixels along the edges, within limits.
         tag = target.tag(kept[0])
         depth = float((rotation @ tag.center + translation)[2])
         cell_px = (calibration.camera_matrix[0, 0] * tag.size_m
                    / tag_edges(target.family, kept[0], target.border_bits).cells / depth)
-        samples_per_cell = int(np.clip(round(cell_px / PIXELS_PER_PROFILE), *SAMPLES_PER_CELL))
-    model = edge_model(target, tuple(kept), samples_per_cell)
+        samples_per_cell = int(np.clip(round(cell_px / options.pixels_per_profile), *options.samples_per_cell))
+    model = edge_model(target, tuple(kept), samples_per_cell, options.end_margin_cells)
     # Coarse to fine: the iterations before the last measure half the profiles (half as
     # many a cell, at least two); they only bring the pose near, and the last measures
     # every profile at the pose it starts from (the fit is its). A measurement costs
@@ -371,13 +395,15 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
     # close there, but behind the wide lens (its tags get two a cell) agile went 3.4 -> 4.2 mm
     # RMS and turn_after_init 30.8 -> 36.5 mm, and behind the narrow lens at 90 deg/s the
     # tracker lost 7 % of the frames (python -m bench intrinsics, tests/test_tracking_*).
-    coarse = edge_model(target, tuple(kept), max(SAMPLES_PER_CELL[0], samples_per_cell // 2))
+    coarse = edge_model(target, tuple(kept), max(options.samples_per_cell[0], samples_per_cell // 2),
+                        options.end_margin_cells)
     fit = None
     iterations = max(iterations, 1)
     for iteration in range(iterations):
         last = iteration == iterations - 1
-        measured = measure_edges(image, model if last else coarse, rotation, translation, calibration, spread=last)
-        if measured is None or len(measured[0]) < MIN_PROFILES:
+        measured = measure_edges(image, model if last else coarse, rotation, translation, calibration, spread=last,
+                                 options=options)
+        if measured is None or len(measured[0]) < options.min_profiles:
             return None
         offset, jacobian, rows, spread = measured
         # Robust: a step further than 4 sigma (median-based) from the rest is not this edge.
@@ -388,7 +414,7 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
         normal = a.T @ a
         with_corners = corners is not None and np.linalg.matrix_rank(normal) < 6
         if with_corners:
-            profile_weight = 1.0 / max(sigma, MIN_PROFILE_SIGMA_PX) ** 2
+            profile_weight = 1.0 / max(sigma, options.min_profile_sigma_px) ** 2
             corner_normal, corner_gradient = corners.normal_equations(rotation, translation, calibration)
             step = np.linalg.solve(normal * profile_weight + corner_normal, a.T @ b * profile_weight + corner_gradient)
         else:
@@ -408,15 +434,15 @@ def align_to_edges(image: np.ndarray, target: Target, calibration: CameraCalibra
 
 def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
                          calibration: CameraCalibration, max_shift_m: float = 0.05,
-                         iterations: int | None = None,
-                         sharp_corner_rms_px: float = SHARP_CORNER_RMS_PX) -> TargetPose:
+                         iterations: int | None = None, sharp_corner_rms_px: float | None = None,
+                         options: EdgeOptions = EDGES) -> TargetPose:
     """``pose`` aligned to every cell edge of its tags (or unchanged when that fails or
     moves the camera further than ``max_shift_m``, which a right start never needs).
 
     The aligned pose's ``reproj_rms_px`` is the RMS of the edge profiles' offsets (pixels
     along the edges' normals) it was fitted to; ``residuals_px`` stay the corners'.
     ``sharp_corner_rms_px``: the corners' RMS about the aligned pose on a sharp image of
-    this camera (more is taken for blur)."""
+    this camera (more is taken for blur; None: ``options.sharp_corner_rms_px``)."""
     if pose.rvec is None or pose.tvec is None:
         return pose
     corners = pose.points_world
@@ -425,7 +451,7 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     corner_sigma = max(float(np.sqrt(np.sum(pose.residuals_px**2) / dof)), MIN_CORNER_SIGMA_PX)
     try:
         fit = align_to_edges(image, target, calibration, pose.tag_ids, pose.rvec, pose.tvec, iterations,
-                             corners=Corners(corners, observed, corner_sigma))
+                             corners=Corners(corners, observed, corner_sigma), options=options)
     except (np.linalg.LinAlgError, ValueError):
         fit = None
     if fit is None:
@@ -439,10 +465,11 @@ def refine_pose_on_edges(image: np.ndarray, pose: TargetPose, target: Target,
     # ~0.04 px while the pose is 1-3 mm off: agile); the tag corners do, by disagreeing
     # with the aligned pose. As far as they disagree beyond a sharp image's RMS, the
     # noise's covariance is scaled (agile: 84 -> 98 % of the tracker's poses inside 3
-    # sigma); the systematic share grows with the blur by itself (EDGE_BIAS_PER_BLUR).
+    # sigma); the systematic share grows with the blur by itself (edge_bias_per_blur).
     corner_rms = float(np.sqrt(np.mean(residuals**2)))
-    noise, systematic = fit.covariances()
-    noise = noise * max(1.0, corner_rms / sharp_corner_rms_px) ** 2
+    noise, systematic = fit.covariances(options)
+    sharp = options.sharp_corner_rms_px if sharp_corner_rms_px is None else sharp_corner_rms_px
+    noise = noise * max(1.0, corner_rms / sharp) ** 2
     return dataclasses.replace(
         pose, T_world_camera=T_world_camera, rvec=rvec, tvec=tvec, covariance=noise + systematic,
         systematic_covariance=systematic,

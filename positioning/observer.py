@@ -42,7 +42,7 @@ from cubeloc.positioning.detection import (
     TagDetector,
     refine_corners,
 )
-from cubeloc.positioning.edge_alignment import SHARP_CORNER_RMS_PX, refine_pose_on_edges
+from cubeloc.positioning.edge_alignment import refine_pose_on_edges
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.tag_scale import check_tag_scale
 from cubeloc.positioning.tag_search import (
@@ -71,9 +71,6 @@ from cubeloc.positioning.target_pose import (
     unique_target_detections,
 )
 
-# the sharp-image baseline of the library's corners (TargetObserver._sharp_corner_rms)
-SHARP_HISTORY_FRAMES = 100
-SHARP_MIN_FRAMES = 10
 log = structlog.get_logger()
 
 @dataclass(frozen=True)
@@ -142,7 +139,8 @@ class TargetObserver:
         self._scale_message = ""  # the tag-size warning, repeated on every refused frame
         # the library's corners' RMS about the aligned pose on the last steady frames: what
         # a sharp image gives with this camera (kept through reset: it is the lens's)
-        self._steady_corner_rms: collections.deque[float] = collections.deque(maxlen=SHARP_HISTORY_FRAMES)
+        self._steady_corner_rms: collections.deque[float] = collections.deque(
+            maxlen=self.options.edges.sharp_history_frames)
         if edge_refinement or edge_alignment:
             jit.warm_up()  # the compiled kernels now, not on the first frame
 
@@ -344,12 +342,13 @@ class TargetObserver:
     def _sharp_corner_rms(self) -> float:
         """What the library's own corners disagree with the aligned pose by on a sharp image
         of this camera: the 10th percentile of the last steady frames' RMS, at least
-        SHARP_CORNER_RMS_PX (the paper's camera: 0.02-0.05 px). Behind a wide lens (f 450
+        ``EdgeOptions.sharp_corner_rms_px`` (the paper's camera: 0.02-0.05 px). Behind a wide lens (f 450
         px) they are 0.4-0.55 px off a pose within 0.05 px of the truth: blur judged
         against 0.05 px claimed 18-25 mm for 2 mm poses (python -m bench intrinsics)."""
-        if len(self._steady_corner_rms) < SHARP_MIN_FRAMES:
-            return SHARP_CORNER_RMS_PX
-        return max(SHARP_CORNER_RMS_PX, float(np.percentile(self._steady_corner_rms, 10)))
+        edges = self.options.edges
+        if len(self._steady_corner_rms) < edges.sharp_min_frames:
+            return edges.sharp_corner_rms_px
+        return max(edges.sharp_corner_rms_px, float(np.percentile(self._steady_corner_rms, 10)))
 
     def observe(self, image: np.ndarray, prior: Transform | None, seq: int = 0,
                 full_search: bool = True) -> Observation:
@@ -396,8 +395,8 @@ class TargetObserver:
         corners_px = np.concatenate([by_id[i].corners for i in pose.tag_ids]).astype(np.float64)
         if self.edge_alignment:
             aligned = refine_pose_on_edges(image, pose, self.target, self.calibration,
-                                           sharp_corner_rms_px=self._sharp_corner_rms() if steady
-                                           else SHARP_CORNER_RMS_PX)
+                                           sharp_corner_rms_px=self._sharp_corner_rms() if steady else None,
+                                           options=self.options.edges)
             if aligned is not pose:  # else the alignment failed: the corners' pose stands
                 if steady:
                     self._steady_corner_rms.append(float(np.sqrt(np.mean(aligned.residuals_px**2))))

@@ -212,7 +212,7 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
     measurement), jointly over the free tags' placements and the view poses, from the
     corners' solution. The corners fix where the tags are to ~0.05 mm; the edges, many
     more and measured without fitting lines, take that further."""
-    from cubeloc.positioning.edge_alignment import MIN_PROFILES, edge_model, measure_edges
+    from cubeloc.positioning.edge_alignment import EDGES, edge_model, measure_edges
     from cubeloc.positioning.geometry import rotation_from_rvec
 
     nominal, first, free = problem.nominal, problem.first, problem.free
@@ -251,7 +251,7 @@ def _refine_on_edges(views: list[ViewObservation], problem: _Problem, x: np.ndar
                                 np.einsum("mij,mj->mi", rotation, model.normals), model.cell_m, model.tag_index,
                                 model.run_index)
             measured = measure_edges(view.image, moved, view_rotation[v], view_translation[v], calibration)
-            if measured is None or len(measured[0]) < MIN_PROFILES:
+            if measured is None or len(measured[0]) < EDGES.min_profiles:
                 continue
             offset, camera_j, kept, _ = measured
             middle = np.median(offset)

@@ -31,20 +31,12 @@ from cubeloc.positioning.corner_pose import (
     refine_lm,
 )
 from cubeloc.positioning.detection import TagDetection
+from cubeloc.positioning.edge_alignment import EDGES, EdgeOptions
 from cubeloc.positioning.geometry import Transform
 from cubeloc.positioning.target import Target
 
 # Tags whose normals are closer than this lie on one plane (a face) for counting planes.
 SAME_PLANE_DEG = 10.0
-# One plane: the corner noise is never taken below this (refined corners on sharp renders
-# are 0.02-0.05 px off; a floor keeps a perfect fit from claiming certainty).
-PLANE_NOISE_FLOOR_PX = 0.1
-# One plane: IPPE's two solutions, each refined, are one pose when the second lies within
-# the first's 99.73 % ellipsoid (chi-square, 6 degrees of freedom); else the first is
-# chosen when the second fits worse by this much chi-square (a likelihood ratio of
-# e^12.5), and the plane is ambiguous when it does not.
-PLANE_SAME_POSE_CHI2 = 20.06
-PLANE_SEPARATION_CHI2 = 25.0
 
 
 @dataclass(frozen=True)
@@ -65,6 +57,16 @@ class PoseOptions:
     max_tag_angle_deg: float = 70.0
     min_oblique_edge_px: float = 40.0
     max_position_sigma_m: float = 0.01
+    # One plane: the corner noise is never taken below plane_noise_floor_px (refined corners
+    # on sharp renders are 0.02-0.05 px off; a floor keeps a perfect fit from claiming
+    # certainty). IPPE's two solutions, each refined, are one pose when the second lies
+    # within the first's 99.73 % ellipsoid (plane_same_pose_chi2: chi-square, 6 degrees of
+    # freedom); else the first is chosen when the second fits worse by plane_separation_chi2
+    # (chi-square: a likelihood ratio of e^12.5), and the plane is ambiguous when it does not.
+    plane_noise_floor_px: float = 0.1
+    plane_same_pose_chi2: float = 20.06
+    plane_separation_chi2: float = 25.0
+    edges: EdgeOptions = EDGES  # the alignment of the pose to every cell edge (edge_alignment.py)
 
 
 class Refusal(str, enum.Enum):
@@ -146,16 +148,16 @@ def plane_solutions(points_world: np.ndarray, pixels: np.ndarray,
     return sorted(out, key=lambda s: s[0])
 
 
-def _separated_plane(points_world: np.ndarray, pixels: np.ndarray,
-                     calibration: CameraCalibration) -> tuple[np.ndarray, np.ndarray] | None:
+def _separated_plane(points_world: np.ndarray, pixels: np.ndarray, calibration: CameraCalibration,
+                     options: PoseOptions) -> tuple[np.ndarray, np.ndarray] | None:
     """The pose of one plane when it is not ambiguous, else None.
 
     IPPE gives two poses of a plane, each refined by LM. They are one pose when the second
-    lies within the first's uncertainty (``PLANE_SAME_POSE_CHI2``: most views of a board,
+    lies within the first's uncertainty (``plane_same_pose_chi2``: most views of a board,
     where both fall into one minimum). Two distinct minima are told apart by their fit:
-    the second's sum of squared residuals exceeds the first's by ``PLANE_SEPARATION_CHI2``
+    the second's sum of squared residuals exceeds the first's by ``plane_separation_chi2``
     times the corner noise squared (the first's residuals per degree of freedom, at least
-    ``PLANE_NOISE_FLOOR_PX``). The decision rests on the noise and the covariance, so it
+    ``plane_noise_floor_px``). The decision rests on the noise and the covariance, so it
     holds at any distance, resolution and board size."""
     solutions = plane_solutions(points_world, pixels, calibration)
     if not solutions:
@@ -170,11 +172,11 @@ def _separated_plane(points_world: np.ndarray, pixels: np.ndarray,
     second = Transform.from_rvec_tvec(other_rvec, other_tvec).inverse()
     turn, _ = cv2.Rodrigues(second.rotation @ first.rotation.T)  # world frame, as the covariance
     difference = np.concatenate([second.translation - first.translation, turn.reshape(3)])
-    if float(difference @ np.linalg.pinv(covariance) @ difference) <= PLANE_SAME_POSE_CHI2:
+    if float(difference @ np.linalg.pinv(covariance) @ difference) <= options.plane_same_pose_chi2:
         return rvec, tvec
     count = len(pixels)
-    noise2 = max(rms**2 * count / max(2 * count - 6, 1), PLANE_NOISE_FLOOR_PX**2)
-    if (other_rms**2 - rms**2) * count / noise2 < PLANE_SEPARATION_CHI2:
+    noise2 = max(rms**2 * count / max(2 * count - 6, 1), options.plane_noise_floor_px**2)
+    if (other_rms**2 - rms**2) * count / noise2 < options.plane_separation_chi2:
         return None
     return rvec, tvec
 
@@ -211,10 +213,10 @@ def corner_sigma_scale(pose: TargetPose, detections: list[TagDetection], target:
 
 
 def _agreeing(pose: TargetPose, steep: list[TagDetection], scale: dict[int, float], target: Target,
-              calibration: CameraCalibration) -> list[TagDetection]:
+              calibration: CameraCalibration, options: PoseOptions) -> list[TagDetection]:
     """The steep tags whose corners ``pose`` predicts within 3 times their expected noise
-    (the pose's own corner RMS, at least ``PLANE_NOISE_FLOOR_PX``, times their scale)."""
-    noise = max(pose.reproj_rms_px, PLANE_NOISE_FLOOR_PX)
+    (the pose's own corner RMS, at least ``plane_noise_floor_px``, times their scale)."""
+    noise = max(pose.reproj_rms_px, options.plane_noise_floor_px)
     out = []
     for detection in steep:
         predicted = project_pose(target.tag(detection.tag_id).corners, pose.rvec, pose.tvec, calibration)
@@ -283,7 +285,7 @@ def _with_oblique(pose: TargetPose, ours: list[TagDetection], oblique: set[int],
         # A steep tag joins only if the others' pose predicts its corners within its
         # expected noise: a wrong corner there (1 px on a 25 px wide tag) would move the
         # weighted pose by millimetres.
-        agreeing = _agreeing(steeper, [d for d in ours if d.tag_id in oblique], scale, target, calibration)
+        agreeing = _agreeing(steeper, [d for d in ours if d.tag_id in oblique], scale, target, calibration, options)
         if not agreeing:
             return PoseOutcome(steeper, None, f"tags {sorted(oblique)} left out: their corners disagree")
         if len(agreeing) < len(oblique):
@@ -377,7 +379,7 @@ def _solve(ours: list[TagDetection], target: Target, calibration: CameraCalibrat
         # residuals, too few to show a biased edge (measured: a face whose quiet zone met a
         # white background, 1.2 px off on one edge, gave a "separated" pose 20 mm off with
         # sigma 2 mm). Several tags on the plane (a board) are checked by each other.
-        separated = _separated_plane(points_world, pixels, calibration) if len(ours) >= 2 else None
+        separated = _separated_plane(points_world, pixels, calibration, options) if len(ours) >= 2 else None
         if separated is not None:
             rvec, tvec = separated
         elif not options.allow_one_face:

@@ -180,14 +180,14 @@ def test_a_motion_blurred_view_gets_a_covariance_that_covers_its_error():
     assert max(nees) < 14.16, nees  # inside 3 sigma (3 dof)
     # measured: errors 0.3, 5.6, 6.5 mm with sigmas 5.9, 5.5, 7.8 mm (NEES 1.7-3.1); sharp
     # views 1.05-1.07 mm, of which 0.2-0.3 mm the noise and the rest the shift of the edges
-    # that no image rules out (edge_alignment.EDGE_BIAS_PER_BLUR)
+    # that no image rules out (EdgeOptions.edge_bias_per_blur)
     assert max(sigmas[False]) < 1.5e-3 and max(sigmas[True]) > 2e-3, sigmas
 
 
-def _nees_of_views(gammas_blurs, monkeypatch=None) -> tuple[np.ndarray, list[int]]:
-    """NEES (3 dof) of ``cubeloc pose``'s position on seeded views of the cube at 1.2-3 m,
-    each rendered through (gamma, defocus px) of ``gammas_blurs`` (views without a pose
-    left out); and the faces of each."""
+def _nees_of_views(gammas_blurs, options=None) -> tuple[np.ndarray, list[int]]:
+    """NEES (3 dof) of ``cubeloc pose``'s position (with PoseOptions ``options``) on seeded
+    views of the cube at 1.2-3 m, each rendered through (gamma, defocus px) of
+    ``gammas_blurs`` (views without a pose left out); and the faces of each."""
     from cubeloc.positioning.single_frame import TargetPoseProcessor
 
     rng = np.random.default_rng(31)
@@ -195,7 +195,7 @@ def _nees_of_views(gammas_blurs, monkeypatch=None) -> tuple[np.ndarray, list[int
     for k, (gamma, blur) in enumerate(gammas_blurs):
         truth = camera_on_sphere(rng.uniform(0, 360), rng.uniform(5, 50), rng.uniform(1.2, 3.0))
         image = render_view(truth, room=False, seed=40 + k, blur_sigma_px=blur, response_gamma=gamma)
-        estimate = TargetPoseProcessor(make_cube(), paper_camera()).process(image, 0, 0).estimate
+        estimate = TargetPoseProcessor(make_cube(), paper_camera(), options).process(image, 0, 0).estimate
         if estimate is None:  # one face: refused as ambiguous
             continue
         error = estimate.T_world_camera.translation - truth.translation
@@ -204,19 +204,19 @@ def _nees_of_views(gammas_blurs, monkeypatch=None) -> tuple[np.ndarray, list[int
     return np.array(nees), planes
 
 
-def test_a_shift_of_every_edge_through_the_cameras_response_is_inside_the_covariance(monkeypatch):
+def test_a_shift_of_every_edge_through_the_cameras_response_is_inside_the_covariance():
     """Through a gamma of 0.8 or 1.25 a blurred edge is found off its place, every edge
     alike (0.04-0.12 px on the range map's views), and no residual shows it. The pose's
-    systematic share (edge_alignment.EDGE_BIAS_PER_BLUR) covers it: measured on these views
+    systematic share (EdgeOptions.edge_bias_per_blur) covers it: measured on these views
     (23 of 24 posed, 9 with three faces), all inside 99.7 % and median NEES 2.1; with the
     noise share alone, median 47.9 and 2 of 23 inside (bench target_nees: 98-100 % of the
     range map's 373 biased poses inside)."""
-    from cubeloc.positioning import edge_alignment
+    from cubeloc.positioning.edge_alignment import EdgeOptions
+    from cubeloc.positioning.target_pose import PoseOptions
 
     views = [(g, b) for g in (0.8, 1.25) for b in (0.0, 0.8)] * 6
     nees, planes = _nees_of_views(views)
     assert len(nees) >= 18 and min(planes) >= 2
     assert np.mean(nees <= 14.16) >= 0.9 and 1.0 <= np.median(nees) <= 4.5, nees
-    monkeypatch.setattr(edge_alignment, "EDGE_BIAS_PER_BLUR", 0.0)
-    alone, _ = _nees_of_views(views)
+    alone, _ = _nees_of_views(views, PoseOptions(edges=EdgeOptions(edge_bias_per_blur=0.0)))
     assert np.median(alone) > 10.0, alone  # the test can tell: without the share the poses claim too little

@@ -10,14 +10,14 @@ from structlog.testing import capture_logs
 from cubeloc.calib.camera_info import paper_camera
 from cubeloc.fakes import render_view
 from cubeloc.fakes.optics import project
-from cubeloc.positioning import edge_alignment
 from cubeloc.positioning.detection import TagDetection, TagDetector, refine_corners
+from cubeloc.positioning.edge_alignment import EdgeOptions
 from cubeloc.positioning.estimator import PoseState
 from cubeloc.positioning.evaluation import CHI2_3DOF_997
 from cubeloc.positioning.geometry import look_at
 from cubeloc.positioning.single_frame import TargetPoseProcessor
 from cubeloc.positioning.target import make_cube
-from cubeloc.positioning.target_pose import estimate_target_pose
+from cubeloc.positioning.target_pose import PoseOptions, estimate_target_pose
 
 CUBE = make_cube()
 CAMERA = paper_camera()
@@ -74,7 +74,7 @@ def test_two_faces_within_one_and_a_half_times_the_three_face_error():
 
 
 @pytest.mark.slow
-def test_static_stability_over_100_frames_at_1_9_m(monkeypatch):
+def test_static_stability_over_100_frames_at_1_9_m():
     truth = three_face_views(1.9, 1, seed=4)[0]
     # A camera at rest: one noiseless frame, then fresh sensor noise (sigma 2) per frame,
     # the same frames for the edge alignment and for the corners-only baseline.
@@ -106,10 +106,10 @@ def test_static_stability_over_100_frames_at_1_9_m(monkeypatch):
     assert regions == 99  # every frame after the first searched the predicted region only
     # The covariance the pose carries: its noise share matches the scatter (within a factor
     # of 2); the whole of it, with the share every frame of a still scene has in common
-    # (edge_alignment.EDGE_BIAS_PER_BLUR), covers the offset from the truth they share.
+    # (EdgeOptions.edge_bias_per_blur), covers the offset from the truth they share.
     claimed = result.estimate.covariance[:3, :3]
-    monkeypatch.setattr(edge_alignment, "EDGE_BIAS_PER_BLUR", 0.0)
-    noise = TargetPoseProcessor(CUBE, CAMERA).process(frame, 100, 100).estimate.covariance[:3, :3]
+    noise_only = PoseOptions(edges=EdgeOptions(edge_bias_per_blur=0.0))
+    noise = TargetPoseProcessor(CUBE, CAMERA, noise_only).process(frame, 100, 100).estimate.covariance[:3, :3]
     predicted = np.sqrt(np.diag(noise))
     assert np.all(predicted <= 2.0 * rmse_per_axis) and np.all(predicted >= 0.5 * rmse_per_axis), predicted
     offset = positions.mean(axis=0) - truth.translation
