@@ -1,4 +1,4 @@
-"""The soak's checks (bench/soak.py, ``make soak`` runs them for 30 minutes) on a short run:
+"""The soak's checks (``cubeloc.daemon.soak``, ``make soak`` runs them for 30 minutes) on a short run:
 the daemon on pre-rendered frames at the camera's full rate with the cable pulled twice,
 every pose checked against the ground truth, RSS, threads and fds sampled. A leak fast
 enough to show in 12 seconds, a reconnect that leaves a thread or a socket behind, or a
@@ -6,7 +6,7 @@ wrong pose fails here; slower leaks are for the long run."""
 
 from __future__ import annotations
 
-from bench.soak import run_soak
+from cubeloc.daemon.soak import run_soak
 
 
 def test_short_soak_no_leak_steady_rate_no_wrong_pose():
