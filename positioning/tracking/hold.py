@@ -118,7 +118,8 @@ class RayHold:
         if odometry is None:
             # nothing measured the position (rays of unknown depth, each fresh one born on a
             # held pose, agree with a position left behind): it is as unsure as the robot's
-            # motion allows (docs/family.md, "What was traced")
+            # motion allows (a hold before the map drifted 4.3 m claiming 0.1-0.3 m:
+            # docs/notes/2026-12-03-family-traces.md)
             covariance = covariance.copy()
             floor = motion.unmeasured_sigma(self.speed_m_s, held_s) ** 2
             smallest = float(np.min(np.linalg.eigvalsh(covariance[:3, :3])))
