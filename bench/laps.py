@@ -5,7 +5,7 @@ the cube out of view for ~190 s, each lap 0.15 m and 8 deg off the one before) i
 at 1280x1024 with several sensor-noise seeds (``CUBELOC_BENCH_LAPS_SEEDS``, default
 0,1,2,3; kept in ``.cache/laps`` or ``CUBELOC_BENCH_LAPS``) and replayed in this process,
 bundle adjustment in the frame loop, once without loop closure (the default) and once
-with it (``TrackerOptions.loop_closure``).
+with it (``TrackerOptions.loop.enabled``).
 
 Per run: coverage, RMS position error over the run and per lap (no alignment), the last
 lap's and the run's RMS over the first lap's (the trusted-pose issue's goals: at most 1 and
@@ -46,7 +46,8 @@ def _replay(sequence: Path, loop_closure: bool) -> dict:
     calibration = read_camera_info(sequence / "camera.yaml")
     truth = read_tum(sequence / "groundtruth.tum")
     options = ProcessorOptions.in_frame_loop()
-    options = dataclasses.replace(options, tracker=dataclasses.replace(options.tracker, loop_closure=loop_closure))
+    loop = dataclasses.replace(options.tracker.loop, enabled=loop_closure)
+    options = dataclasses.replace(options, tracker=dataclasses.replace(options.tracker, loop=loop))
     errors = np.full(len(truth), np.nan)
     moved = []  # (error before, error after) of the last closure of each frame that closed one, mm
     closed = [0]

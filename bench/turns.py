@@ -10,7 +10,7 @@ frame) the rays no longer hold the turn and the track is lost for 1.3 s (84 % of
 behind the narrow lens (HFOV 29 deg) 90 deg/s at 10 fps drifted 1 deg a turn and, where the
 second turn came round to the first turn's points, PnP took a pose 7.7 deg from the
 prediction and the track went on 16 deg and 0.7 m off (254 mm RMS): a pose turned more
-than ``max_motion_deg`` (5) from the prediction is now refused (52-64 mm RMS; the drift stays).
+than ``motion.max_deg`` (5) from the prediction is now refused (52-64 mm RMS; the drift stays).
 
 Environment: ``CUBELOC_BENCH_SEQUENCES=DIR`` keeps the renders.
 """

@@ -130,10 +130,10 @@ def processor_options(config: Config, max_keyframes: int | None = None, **bundle
 
     defaults = ProcessorOptions()
     floor = replace(defaults.tracker.bundle.floor, enabled=config.positioning.floor)
-    tracker = replace(defaults.tracker, loop_closure=config.positioning.loop_closure,
+    tracker = replace(defaults.tracker, loop=replace(defaults.tracker.loop, enabled=config.positioning.loop_closure),
                       bundle=replace(defaults.tracker.bundle, floor=floor, **bundle_changes))
     if max_keyframes is not None:
-        tracker = replace(tracker, max_keyframes=max_keyframes)
+        tracker = replace(tracker, keyframes=replace(tracker.keyframes, max_kept=max_keyframes))
     return replace(defaults, pose=pose_options(config), tracker=tracker)
 
 

@@ -37,8 +37,8 @@ class PoseSource(str, enum.Enum):
     TARGET = "target"  # the target's pose in this frame (with the map's points in view when fused)
     MAP = "map"  # the map's points in view (PnP), with the wheels' motion when there is odometry
     # too few map points in view: the orientation from the tracks' rays, the position from
-    # the points left, the wheels or the motion model (for at most max_hold_s; nothing in
-    # view: the motion model alone for at most max_coast_s)
+    # the points left, the wheels or the motion model (for at most hold.max_s; nothing in
+    # view: the motion model alone for at most motion.max_coast_s)
     HELD = "held"
     ODOMETRY = "odometry"  # lost: the wheels' motion since the last camera pose ("bridged")
     RELOCALISED = "relocalised"  # this image matched to the map's keyframes

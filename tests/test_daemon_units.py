@@ -305,7 +305,7 @@ def test_the_config_turns_the_trackers_loop_closure_off(tmp_path):
         path.write_text(_config(tmp_path).replace("[zenoh]", text + "[zenoh]"))
         processor = make_processor(prepare(load_config(path, environ={})))
         try:
-            assert processor.tracker.options.loop_closure is expected
+            assert processor.tracker.options.loop.enabled is expected
         finally:
             processor.close()
 
@@ -322,6 +322,6 @@ def test_the_trackers_options_come_from_the_configuration_in_one_place():
     config = Config(positioning=PositioningConfig(allow_two_faces=False, max_reproj_rms_px=0.8, loop_closure=True))
     options = processor_options(config, 400, solver="scipy")
     assert not options.pose.allow_two_faces and options.pose.max_reproj_rms_px == 0.8
-    assert options.tracker.loop_closure and options.tracker.max_keyframes == 400
+    assert options.tracker.loop.enabled and options.tracker.keyframes.max_kept == 400
     assert options.tracker.bundle.solver == "scipy" and options.tracker.bundle.background
     assert options.tracker.init == ProcessorOptions().tracker.init

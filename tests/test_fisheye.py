@@ -103,7 +103,7 @@ def test_behind_a_small_fisheye_the_map_starts_on_the_poses_the_cube_gives(tmp_p
     """spin_in_place through a 640x480 fisheye (f 280 px): the cube 2.25 m away is posed
     only to 40-100 mm (its tags 18 px wide, fitting to 0.24-0.7 px), never within the
     bounds that let a pose begin or anchor the map (10 and 5 mm, 0.25 px). A camera that
-    never meets them is held to twice what it can do (``anchor_best_ratio``): the map
+    never meets them is held to twice what it can do (``anchor.best_ratio``): the map
     starts, on a pair whose baseline its poses measure to 50 % (``init.max_scale_std``),
     and carries the pose where the cube is out of view. Measured: 99.1 % of frames, 45.5
     mm RMS, 136 mm max, 99.5 % inside 3 sigma, none beyond 5; before, 45 % (the cube's

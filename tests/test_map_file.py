@@ -248,7 +248,7 @@ def test_a_loaded_maps_points_are_found_again_where_the_pose_puts_them_and_retir
     errors = np.linalg.norm(project(truth.inverse().apply(points), calibration) - again.pixels, axis=1)
     # measured: 72 of 294 found (the cube's painted-over tags hold most of this map's
     # points), 1.9 px median from the true projection (half resolution), 8.2 px at most
-    assert len(again.ids) >= 40 and np.median(errors) < 3.0 and errors.max() <= TrackerOptions().refind_radius_px
+    assert len(again.ids) >= 40 and np.median(errors) < 3.0 and errors.max() <= TrackerOptions().refind.radius_px
     assert set(again.found) <= set(again.visible) and set(again.ids) & set(again.visible) <= set(again.found)
     moved = truth @ Transform.from_rvec_tvec(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     assert len(relocaliser.refind(image, world_map, moved, np.zeros(0, np.int64)).ids) < len(again.ids) / 4  # 7

@@ -52,12 +52,12 @@ def test_a_loaded_point_not_found_where_it_should_be_seen_retires():
     for point_id in range(3):
         world_map.add_point(point_id, np.zeros(3), -2)
     gone = 0
-    for chance in range(options.retire_after_visible):
+    for chance in range(options.refind.retire_after_visible):
         found = [0] + ([1] if chance in (3, 7) else []) + ([2] if chance == 5 else [])
         for again in range(3):  # the same place three times: one chance
             here = np.array([0.12 * chance, 0.01 * again, 0.0])
             gone += world_map.retire(np.array([0, 1, 2]), np.array(found), here, options)
-        if chance < options.retire_after_visible - 1:
+        if chance < options.refind.retire_after_visible - 1:
             assert set(world_map.points) == {0, 1, 2}
     assert gone == 1 and world_map.points_retired == 1
     assert set(world_map.points) == {0, 1}

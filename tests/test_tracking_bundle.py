@@ -98,19 +98,19 @@ def test_the_scale_variance_bundle_adjustment_claims_covers_its_scale_error():
 def test_the_drift_grows_with_the_path_at_the_scale_bundle_adjustment_measured():
     """Windows held by keyframes walk the scale on (each adds the share of the window's
     variance its new points are); one held by the target sets it; the position's standard deviation
-    grows by the scale's per metre travelled, never by less than ``drift_per_m``."""
+    grows by the scale's per metre travelled, never by less than ``drift.per_m``."""
     options = TrackerOptions()
     drift = Drift(options)
     step = Transform(np.eye(3), np.array([1.0, 0.0, 0.0]))
     start, measured = Transform.identity(), np.zeros((6, 6))
     drift.covariance(None, start, measured)
     sigma = np.sqrt(drift.covariance(start, step, measured)[0, 0])  # 1 m at the floor's rate
-    assert sigma == pytest.approx(options.drift_floor_m + options.drift_per_m * 1.0)
+    assert sigma == pytest.approx(options.drift.floor_m + options.drift.per_m * 1.0)
     for _ in range(4):  # four windows measuring a 2 % scale across them, each with a quarter of its points new
         drift.scale_measured(0.02**2, 0.25, held_by_target=False)
     assert np.sqrt(drift.scale_var) == pytest.approx(0.02)
     sigma = np.sqrt(drift.covariance(step, Transform(np.eye(3), np.array([2.0, 0.0, 0.0])), measured)[0, 0])
-    assert sigma == pytest.approx(options.drift_floor_m + options.drift_per_m + 0.02)
+    assert sigma == pytest.approx(options.drift.floor_m + options.drift.per_m + 0.02)
     drift.scale_measured(0.001**2, 0.5, held_by_target=True)  # the target's window: its scale
     assert np.sqrt(drift.scale_var) == pytest.approx(0.001)
     drift.reset()

@@ -24,6 +24,8 @@ from cubeloc.positioning.tracking.options import (
     AlignmentOptions,
     BundleOptions,
     InitOptions,
+    KeyframeOptions,
+    LoopOptions,
     TrackerOptions,
 )
 from cubeloc.positioning.tracking.patch_alignment import PatchAligner
@@ -310,7 +312,7 @@ def test_target_in_view_keeps_the_tracker_within_a_few_millimetres():
 
 def test_target_return_corrects_drift_visibly_and_lost_frames_publish_nothing():
     poses = trolley_path(90, turn_at=1e9)
-    tracker = Tracker(CAL, replace(SYNC, relocalised_jump_m=0.002))
+    tracker = Tracker(CAL, replace(SYNC, anchor=replace(SYNC.anchor, jump_m=0.002)))
 
     def visible(i: int) -> bool:
         return i < 15 or i >= 70
@@ -382,8 +384,8 @@ def test_an_anchoring_pose_completes_the_beginning_on_an_unsure_reference():
 def test_background_bundle_adjustment_and_bounded_memory():
     poses = trolley_path(80)
     # the newest 10 keyframes and 2 older ones kept for loop closure
-    options = TrackerOptions(bundle=replace(QUICK_BA, background=True), max_keyframes=10, loop_kept_keyframes=2,
-                             loop_closure=True)
+    options = TrackerOptions(bundle=replace(QUICK_BA, background=True), keyframes=KeyframeOptions(max_kept=10),
+                             loop=LoopOptions(enabled=True, kept_keyframes=2))
     tracker = Tracker(CAL, options)
     try:
         outputs = run(tracker, SyntheticTracks(room_points(10), seed=11), poses, lambda i: i < 20, paced=True)

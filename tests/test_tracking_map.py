@@ -30,7 +30,7 @@ def test_map_triangulates_only_across_baselines_that_outweigh_the_poses_own_erro
     oldest when every pose is sure to 2 mm; from the next when the oldest is 20 mm
     uncertain (its errors, not the parallax, would set the depths: the map's scale); none
     when the newest itself is 100 mm uncertain."""
-    k = TrackerOptions().triangulation_min_baseline_sigmas
+    k = TrackerOptions().triangulation.min_baseline_sigmas
     points = np.array([[0.1 * j, 0.05 * j, 1.0 + 0.02 * j] for j in range(-5, 6)])
     ids = np.arange(len(points), dtype=np.int64)
 

@@ -122,7 +122,7 @@ def test_behind_a_narrow_lens_a_brisk_spin_refuses_a_pose_turned_far_from_the_pr
     """Behind the narrow lens (HFOV 29 deg) at 90 deg/s and 10 fps, where the second turn
     came round to the first turn's points (drifted 1 deg), PnP took a pose 7.7 deg from the
     motion model's prediction and the track went on 16 deg and 0.7 m off (254 mm RMS). A pose
-    turned more than max_motion_deg (5) from the prediction is refused now. Measured: 100 %,
+    turned more than motion.max_deg (5) from the prediction is refused now. Measured: 100 %,
     64 mm RMS, 160 mm max; 52 mm, 130 mm since the edge alignment's coarse first iteration
     (the drift itself is not solved: 64-76 % inside 3 sigma)."""
     from cubeloc.fakes.scenarios import Effects
@@ -182,7 +182,7 @@ def test_laps_of_the_room_close_the_loop_on_the_first(tmp_path_factory):
     out = tmp_path_factory.mktemp("laps") / "laps"
     write_synthetic_sequence(out, "laps", seconds=150.0, seed=0, calibration=half_resolution())
     truth = read_tum(out / "groundtruth.tum")
-    options = replace(SYNC, tracker=replace(SYNC.tracker, loop_closure=True))
+    options = replace(SYNC, tracker=replace(SYNC.tracker, loop=replace(SYNC.tracker.loop, enabled=True)))
     errors, nearer, closed = [], [], [0]
 
     def closures(frame, image, processor) -> None:

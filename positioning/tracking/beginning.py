@@ -6,7 +6,7 @@
   (out of the view, the hold on rays ended, or the reference's tracks run out:
   ``Initialiser.on_departure``).
 - Again when the tracker is lost and the target's pose is sure enough to begin a map
-  (``init.max_position_std_m``) but not to anchor keyframes (``anchor_max_position_std_m``):
+  (``init.max_position_std_m``) but not to anchor keyframes (``anchor.max_position_std_m``):
   the same two algorithms, and the map they begin joins the old one. An anchoring pose
   completes the pair too; a relocalisation into the old map, a pose from it or a
   keyframe anchored on the target ends it (docs/tracker.md).
@@ -149,7 +149,7 @@ class MapBeginning:
         (``tracked``: the map gave a pose, which ends a beginning, as an anchoring pose does)."""
         if not tracked and trusted is not None and self._begins_again(trusted):
             return self._initialising(frame, trusted)
-        anchoring = self._anchors(trusted, self.options.anchor_max_position_std_m)
+        anchoring = self._anchors(trusted, self.options.anchor.max_position_std_m)
         if not tracked and anchoring and self._beginning_again:
             # a pose that anchors keyframes is also Algorithm 2's frame B for the reference held
             begun = self._completes_beginning(frame, trusted)
@@ -165,7 +165,7 @@ class MapBeginning:
         error small against the depths, as at the start), and the map they begin joins this
         one; they go on while the map gives no pose. This is what a lost map can begin from
         (the cube small at the image's edge: 5-11 mm poses, each refused as an anchor)."""
-        if self._anchors(target, self.options.anchor_max_position_std_m):
+        if self._anchors(target, self.options.anchor.max_position_std_m):
             return False  # anchors keyframes: the map goes on from it
         if not self._anchors(target, self.options.init.max_position_std_m):
             return False

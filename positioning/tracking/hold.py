@@ -5,7 +5,7 @@ pose (its camera centre and world direction). When PnP has too few map points (a
 the spot, a passer-by in front of the map) ``hold`` fits the orientation to those rays and
 the position to the map points still in view and the motion model (``pose_fit``), whose
 standard deviation grows with the time held; with too few rays as well it coasts on the
-motion model alone for at most ``max_coast_s`` (``motion.MotionModel.coast``).
+motion model alone for at most ``motion.max_coast_s`` (``motion.MotionModel.coast``).
 
 ``Drift`` adds to a tracking pose's covariance what its own measurements cannot know: how
 far the map may have drifted since the target was last trusted, growing with the path at
@@ -82,38 +82,38 @@ class RayHold:
             self.since = motion.stamp
             self.speed_m_s = motion.speed(prediction, stamp_ns)
         held_s = (stamp_ns - self.since) / 1e9
-        if held_s > o.max_hold_s:
+        if held_s > o.hold.max_s:
             return None
         has = world_map.mapped(tracks.ids)
         born = np.array([not h and int(t) in self.rays for t, h in zip(tracks.ids, has, strict=True)], bool)
-        if born.sum() < o.min_hold_rays:
+        if born.sum() < o.hold.min_rays:
             coasted = motion.coast(prediction, held_s)
             return None if coasted is None else (coasted[0], self._from_base(coasted[1]))
         points = np.array([world_map.points[int(t)] for t in tracks.ids[has]]).reshape(-1, 3)
         depths = prediction.inverse().apply(points)[:, 2] if has.any() else np.zeros(0)
         depths = depths[depths > 0]
-        depth = float(np.median(depths)) if len(depths) else o.hold_default_depth_m
+        depth = float(np.median(depths)) if len(depths) else o.hold.default_depth_m
         centres = np.array([self.rays[int(t)][0] for t in tracks.ids[born]])
         directions = np.array([self.rays[int(t)][1] for t in tracks.ids[born]])
         rays = Rays(centres, directions, xn[born], 1.0 / depth)
         if odometry is not None:  # the wheels measured the translation: the odometry's, with its sigma
-            prior = (prediction.translation, float(np.sqrt(o.hold_sigma_m**2 + odometry[0, 0])))
+            prior = (prediction.translation, float(np.sqrt(o.hold.sigma_m**2 + odometry[0, 0])))
         else:  # no measured translation: the motion model's dies away (it moved the prediction)
-            prior = (motion.faded(prediction, stamp_ns), o.hold_sigma_m + o.hold_sigma_m_per_s * held_s)
+            prior = (motion.faded(prediction, stamp_ns), o.hold.sigma_m + o.hold.sigma_m_per_s * held_s)
         fit = fit_pose(prediction, points, xn[has], rays, fx=self.fx, sigma_px=o.track_sigma_px,
                        prior_position=prior)
-        if fit is not None and 0 < fit.point_inliers.sum() < o.min_hold_points:
+        if fit is not None and 0 < fit.point_inliers.sum() < o.hold.min_points:
             # a handful of points pull the position wherever their few rays allow (measured:
             # 2 points moved a held pose 40 mm): the rays and the motion model alone
             fit = fit_pose(prediction, np.zeros((0, 3)), np.zeros((0, 2)), rays, fx=self.fx,
                            sigma_px=o.track_sigma_px, prior_position=prior)
-        if fit is None or fit.ray_inliers.sum() < max(o.min_hold_rays, o.min_hold_ray_fraction * born.sum()):
+        if fit is None or fit.ray_inliers.sum() < max(o.hold.min_rays, o.hold.min_ray_fraction * born.sum()):
             return None
         rotation_sigma = np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[3:, 3:])))
-        if np.degrees(rotation_sigma) > o.max_hold_rotation_sigma_deg:
+        if np.degrees(rotation_sigma) > o.hold.max_rotation_sigma_deg:
             return None
         covariance = fit.covariance
-        if fit.point_inliers.sum() >= o.min_hold_points:
+        if fit.point_inliers.sum() >= o.hold.min_points:
             return fit.T_world_camera, covariance  # map points place it: in the map, not from the base
         if odometry is None:
             # nothing measured the position (rays of unknown depth, each fresh one born on a
@@ -140,7 +140,7 @@ class Drift:
         self.options = options
         self.path_m = 0.0
         self.turned_rad = 0.0
-        self.floor_m = options.drift_floor_m
+        self.floor_m = options.drift.floor_m
         self.scale_var = 0.0  # variance of the map's relative scale error where the camera is
         self.scaled_m = 0.0  # the position's standard deviation grown with the path at that scale
         self._agreement: collections.deque[float] = collections.deque(maxlen=30)  # metres
@@ -167,13 +167,13 @@ class Drift:
         """The target is trusted again: nothing has drifted since."""
         self.path_m = self.turned_rad = self.scaled_m = self.scale_var = 0.0
         agreement = float(np.sqrt(np.mean(np.square(self._agreement)))) if self._agreement else 0.0
-        self.floor_m = max(self.options.drift_floor_m, agreement)
+        self.floor_m = max(self.options.drift.floor_m, agreement)
 
     @property
     def grown_m(self) -> float:
         """How much the position's standard deviation has grown since the target: the
         measure of drift ``Map.correct`` spreads a correction by."""
-        return self.options.drift_per_m * self.path_m + self.options.drift_m_per_rad * self.turned_rad
+        return self.options.drift.per_m * self.path_m + self.options.drift.m_per_rad * self.turned_rad
 
     def scale_measured(self, window_var: float, renewed: float, held_by_target: bool, anchored_var: float = 0.0
                        ) -> None:
@@ -212,20 +212,20 @@ class Drift:
     def covariance(self, previous: Transform | None, pose: Transform, measured: np.ndarray | None
                    ) -> np.ndarray | None:
         """``measured`` (this frame's own covariance) plus the drift since the target, a
-        standard deviation growing with the path and rotation (``drift_per_m`` ...);
+        standard deviation growing with the path and rotation (``drift.per_m`` ...);
         ``previous`` is the last frame's pose, from which the path goes on. Each metre of it
-        adds the map's relative scale error (``scale_measured``), at least ``drift_per_m``."""
+        adds the map's relative scale error (``scale_measured``), at least ``drift.per_m``."""
         if previous is not None:
             step_m = float(np.linalg.norm(pose.translation - previous.translation))
             self.path_m += step_m
             # a map whose scale is off by s puts every metre travelled on it s off
-            self.scaled_m += max(self.options.drift_per_m, float(np.sqrt(self.scale_var))) * step_m
+            self.scaled_m += max(self.options.drift.per_m, float(np.sqrt(self.scale_var))) * step_m
             self.turned_rad += float(previous.rotation_angle_to(pose))
         if measured is None:
             return None
         o = self.options
-        position_sigma = self.floor_m + self.scaled_m + self.options.drift_m_per_rad * self.turned_rad
-        rotation_sigma = o.drift_rad_per_m * self.path_m + o.drift_rad_per_rad * self.turned_rad
+        position_sigma = self.floor_m + self.scaled_m + self.options.drift.m_per_rad * self.turned_rad
+        rotation_sigma = o.drift.rad_per_m * self.path_m + o.drift.rad_per_rad * self.turned_rad
         total = np.array(measured, dtype=np.float64, copy=True)
         total[:3, :3] += np.eye(3) * position_sigma**2
         total[3:, 3:] += np.eye(3) * rotation_sigma**2

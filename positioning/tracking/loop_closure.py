@@ -1,7 +1,7 @@
 """Loop closure (a mixin of ``tracker.Tracker``, whose state it shares): when the view comes
 back to a place mapped long ago, matches against its keyframes say how far the map has
 drifted since, and the map being tracked is moved onto it (docs/tracker.md, "Loop closure").
-Off by default (``TrackerOptions.loop_closure``).
+Off by default (``TrackerOptions.loop.enabled``).
 """
 
 from __future__ import annotations
@@ -25,12 +25,12 @@ class LoopClosure:
     def loop_keyframes(self, frame: TrackedFrame) -> list[Keyframe]:
         """Keyframes this frame may close a loop with, the oldest first (the map as first
         made, before any loop closure moved it): made
-        ``loop_min_age_s`` or more before it and not in bundle adjustment's window, neither
-        anchored (the target holds those) nor loaded, within ``loop_radius_m`` and
-        ``loop_max_angle_deg`` of its pose, and with at most ``loop_max_shared`` of their
+        ``loop.min_age_s`` or more before it and not in bundle adjustment's window, neither
+        anchored (the target holds those) nor loaded, within ``loop.radius_m`` and
+        ``loop.max_angle_deg`` of its pose, and with at most ``loop.max_shared`` of their
         points tracked now (a place left and seen again, not the place being tracked), not
         moved by an earlier loop closure (``Keyframe.loop_moved``: its pose is then that
-        correction's guess), and whose drift is at most ``loop_max_drift_share`` of this
+        correction's guess), and whose drift is at most ``loop.max_drift_share`` of this
         frame's. None unless ``frame``'s pose came from the map and made a keyframe."""
         o = self.options
         pose = frame.pose
@@ -43,30 +43,30 @@ class LoopClosure:
         for kf in keyframes:
             if kf.anchored or kf.kf_id in self.map.fixed or kf.loop_moved or not len(kf.descriptor_ids):
                 continue
-            if (frame.stamp_ns - kf.stamp_ns) / 1e9 < o.loop_min_age_s:
+            if (frame.stamp_ns - kf.stamp_ns) / 1e9 < o.loop.min_age_s:
                 continue
             distance = float(np.linalg.norm(kf.T_world_camera.translation - pose.translation))
             angle = np.degrees(np.arccos(np.clip(kf.T_world_camera.rotation[:, 2] @ axis, -1.0, 1.0)))
-            if distance > o.loop_radius_m or angle > o.loop_max_angle_deg:
+            if distance > o.loop.radius_m or angle > o.loop.max_angle_deg:
                 continue
-            if np.isin(kf.descriptor_ids, live).mean() > o.loop_max_shared:
+            if np.isin(kf.descriptor_ids, live).mean() > o.loop.max_shared:
                 continue
             drift = kf.drift_m if kf.stamp_ns > self._target_stamp else 0.0
-            if drift > o.loop_max_drift_share * self._drift.grown_m:
+            if drift > o.loop.max_drift_share * self._drift.grown_m:
                 continue  # about as sure as this frame: little to correct, and its own error to take on
             near.append((kf.kf_id, kf))
         near.sort(key=lambda pair: pair[0])  # the oldest first
-        return [kf for _, kf in near[: o.loop_keyframes]]
+        return [kf for _, kf in near[: o.loop.keyframes]]
 
     def close_loop(self, frame: TrackedFrame, pose: Transform, covariance: np.ndarray, reference: Keyframe
                    ) -> tuple[str, TrackedFrame]:
         """``frame``, tracked on the map, was found again in ``reference`` (one of
-        ``loop_keyframes``) at ``pose`` with the match's ``covariance``: one piece of
+        ``loop.keyframes``) at ``pose`` with the match's ``covariance``: one piece of
         evidence of how far the map has drifted since the reference (the offset between
         the two poses, its position and its rotation about the camera). A match that puts
         the camera further than this frame's own covariance, drift included, allows
         (chi-square 99.9 %, 3 dof) is the match's error: ``"refused"``. The map is moved
-        once ``loop_matches`` pieces within ``loop_window_s`` agree with their median
+        once ``loop.matches`` pieces within ``loop.window_s`` agree with their median
         (99.9 %) and the median is beyond its noise (99 %): the map made since the surest
         of their references (the least drift) is moved onto it, the drift spread along the
         way (``Map.correct``, as for the target's return): ``"closed"``; the median within
@@ -86,11 +86,11 @@ class LoopClosure:
             return "refused", frame
         o = self.options
         turn = pose.rotation @ current.rotation.T
-        evidence = [e for e in self._loop_evidence if (stamp_ns - e[0]) / 1e9 <= o.loop_window_s]
+        evidence = [e for e in self._loop_evidence if (stamp_ns - e[0]) / 1e9 <= o.loop.window_s]
         evidence.append((stamp_ns, offset, np.linalg.inv(match), Transform(turn, np.zeros(3)).rvec(), reference))
         # the evidence is of one drift: offsets measured since agree once the first closes
         self._loop_evidence = evidence
-        if len(evidence) < o.loop_matches:
+        if len(evidence) < o.loop.matches:
             return "pending", frame
         information = sum(e[2] for e in evidence)
         mean = np.median([e[1] for e in evidence], axis=0)  # robust: one match in several is far off

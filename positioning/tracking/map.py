@@ -239,21 +239,21 @@ class Map:
                options: TrackerOptions) -> int:
         """Count, for a loaded map's points, the chances to be seen (``visible`` from
         ``camera_position``) and those taken (``found``); a point's chance counts only from
-        at least ``retire_min_move_m`` from where its last one was (one place seen again
+        at least ``refind.retire_min_move_m`` from where its last one was (one place seen again
         and again tells nothing new: 20-30 % of the points that should be seen are not
         matched from a given place, room unchanged). A point found in at most
-        ``retire_max_found`` of its last ``retire_after_visible`` chances is retired
+        ``refind.retire_max_found`` of its last ``refind.retire_after_visible`` chances is retired
         (removed): a thing moved away or covered. Returns how many went."""
         found_set = {int(p) for p in found}
         gone = []
         for point_id in (int(p) for p in visible):
             last = self.point_chance_at.get(point_id)
-            if last is not None and np.linalg.norm(camera_position - last) < options.retire_min_move_m:
+            if last is not None and np.linalg.norm(camera_position - last) < options.refind.retire_min_move_m:
                 continue
             self.point_chance_at[point_id] = np.asarray(camera_position, np.float64).copy()
-            history = self.point_history.setdefault(point_id, collections.deque(maxlen=options.retire_after_visible))
+            history = self.point_history.setdefault(point_id, collections.deque(maxlen=options.refind.retire_after_visible))
             history.append(point_id in found_set)
-            if len(history) == history.maxlen and sum(history) <= options.retire_max_found:
+            if len(history) == history.maxlen and sum(history) <= options.refind.retire_max_found:
                 gone.append(point_id)
         for point_id in gone:
             self.remove_point(point_id)

@@ -7,9 +7,9 @@ live camera's frames come irregularly. Where wheel odometry is the prior
 instead. The same model says what a prediction that nothing else measures is worth:
 
 - held on rays (``hold.RayHold``), the velocity's translation dies away
-  (``hold_velocity_half_life_s``: a robot that stops to turn on the spot), and a position
+  (``motion.hold_velocity_half_life_s``: a robot that stops to turn on the spot), and a position
   nothing measures is as unsure as a robot that may change its speed (``unmeasured_sigma``);
-- with nothing in view, the prediction alone for at most ``max_coast_s`` (``coast``).
+- with nothing in view, the prediction alone for at most ``motion.max_coast_s`` (``coast``).
 
 The tracker owns one and decides when a pose is a measurement of motion (``update``), a
 correction (``relocalised``: where the camera is, not how it moves) or too noisy to say.
@@ -51,14 +51,14 @@ class MotionModel:
         """The pose at ``stamp_ns``: the wheels' motion from the last pose where
         ``odometry`` is the prior, else the last pose carried on by the velocity (the last
         pose itself when the velocity is unknown or the gap is longer than
-        ``max_extrapolation_s``); None before any pose."""
+        ``motion.max_extrapolation_s``); None before any pose."""
         if self.last is None:
             return None
         carried = None if odometry is None else odometry.prior(self.last, self.stamp, stamp_ns)
         if carried is not None:
             return carried
         dt = (stamp_ns - self.stamp) / 1e9
-        if self.velocity is None or not 0.0 < dt <= self.options.max_extrapolation_s:
+        if self.velocity is None or not 0.0 < dt <= self.options.motion.max_extrapolation_s:
             return self.last
         return self.extrapolated(self.last, dt)
 
@@ -79,7 +79,7 @@ class MotionModel:
         dt = (stamp_ns - self.stamp) / 1e9
         own = None if own is None else np.asarray(own, np.float64)[:3, :3]
         previous, self.own = self.own, own
-        if self.last is None or not 0.0 < dt <= self.options.max_extrapolation_s:
+        if self.last is None or not 0.0 < dt <= self.options.motion.max_extrapolation_s:
             self.velocity = self.velocity_covariance = None
         elif noisy:
             pass
@@ -105,14 +105,14 @@ class MotionModel:
         would refuse this pose against its prediction): lost, the velocity is none and held
         steps make it a standstill, and in a spin every frame after was then found by
         relocalisation alone (narrow lens at 90 deg/s: 30 frames). Lost, the velocity is
-        unknown: the step from the last pose measured, within ``max_extrapolation_s`` (the
+        unknown: the step from the last pose measured, within ``motion.max_extrapolation_s`` (the
         relocalisation before this one), is the velocity, as unsure as the two poses' own
         covariances over the step (without it the next frame's KLT searches unguided, and in a
         turn loses most of the tracks the relocalisation gave back: blank_wall, 120 -> 2)."""
         if self.measured is not None:
             before, before_stamp = self.measured
             dt = (stamp_ns - before_stamp) / 1e9
-            if 0.0 < dt <= self.options.max_extrapolation_s:
+            if 0.0 < dt <= self.options.motion.max_extrapolation_s:
                 expected = before if self.velocity is None else self.extrapolated(before, dt)
                 if self.velocity is None or beyond_motion(pose, expected, self.options):
                     # lost, the pose before is a relocalisation's, as unsure as its match
@@ -142,8 +142,8 @@ class MotionModel:
 
     def faded(self, prediction: Transform, stamp_ns: int) -> np.ndarray:
         """The position the motion model gives when nothing measures the translation: its
-        step from the last pose dies away, halving every ``hold_velocity_half_life_s``."""
-        decay = 0.5 ** ((stamp_ns - self.stamp) / 1e9 / self.options.hold_velocity_half_life_s)
+        step from the last pose dies away, halving every ``motion.hold_velocity_half_life_s``."""
+        decay = 0.5 ** ((stamp_ns - self.stamp) / 1e9 / self.options.motion.hold_velocity_half_life_s)
         return self.last.translation + decay * (prediction.translation - self.last.translation)
 
     def velocity_sigma(self) -> float:
@@ -156,26 +156,26 @@ class MotionModel:
         """The standard deviation of a position nothing has measured for ``seconds``: the
         robot may have gone on at the speed it had then (``speed_m_s``, itself as unsure as
         ``velocity_sigma``; the motion model lets that speed die away) or changed it by
-        ``coast_accel_m_s2`` (0.5 a t^2), as the coast assumes."""
+        ``motion.coast_accel_m_s2`` (0.5 a t^2), as the coast assumes."""
         o = self.options
-        return o.hold_sigma_m + (o.hold_sigma_m_per_s + speed_m_s + self.velocity_sigma()) * seconds \
-            + 0.5 * o.coast_accel_m_s2 * seconds * seconds
+        return o.hold.sigma_m + (o.hold.sigma_m_per_s + speed_m_s + self.velocity_sigma()) * seconds \
+            + 0.5 * o.motion.coast_accel_m_s2 * seconds * seconds
 
     def coast(self, prediction: Transform, seconds: float) -> Held | None:
         """Nothing to see (a passer-by filling the view): the prediction for at most
-        ``max_coast_s`` since the last measured pose, with the covariance of a robot that
-        may have changed its speed by ``coast_accel_m_s2`` and its turn rate by
-        ``coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2), at a velocity known to
+        ``motion.max_coast_s`` since the last measured pose, with the covariance of a robot that
+        may have changed its speed by ``motion.coast_accel_m_s2`` and its turn rate by
+        ``motion.coast_angular_accel_rad_s2`` meanwhile (0.5 a t^2), at a velocity known to
         ``velocity_covariance``."""
         o = self.options
-        if seconds > o.max_coast_s:
+        if seconds > o.motion.max_coast_s:
             return None
         t = max(seconds, 1e-3)
         covariance = np.zeros((6, 6))
-        covariance[:3, :3] = np.eye(3) * (o.hold_sigma_m + 0.5 * o.coast_accel_m_s2 * t * t) ** 2
+        covariance[:3, :3] = np.eye(3) * (o.hold.sigma_m + 0.5 * o.motion.coast_accel_m_s2 * t * t) ** 2
         if self.velocity_covariance is not None:  # carried on at a velocity this unsure
             covariance[:3, :3] += self.velocity_covariance * t * t
-        covariance[3:, 3:] = np.eye(3) * (0.5 * o.coast_angular_accel_rad_s2 * t * t) ** 2
+        covariance[3:, 3:] = np.eye(3) * (0.5 * o.motion.coast_angular_accel_rad_s2 * t * t) ** 2
         return prediction, covariance
 
 

@@ -1,4 +1,6 @@
-"""Every tunable of the tracker, in frozen dataclasses passed explicitly.
+"""Every tunable of the tracker, in frozen dataclasses passed explicitly: ``TrackerOptions``
+holds one group per concern (features, init, bundle, pnp, keyframes, triangulation, loop,
+anchor, motion, hold, drift, reloc, refind), each field with its rule and units.
 
 Defaults suit the paper's camera (1280x1024, fx 1667 px) in a room a few metres across.
 Pixel thresholds are in pixels of the full-resolution image.
@@ -54,7 +56,7 @@ class InitOptions:
     min_point_parallax_deg: float = 0.5  # a single point's own parallax
     # Before a map exists, a target pose this sure may start it (reference A and frame B):
     # Algorithm 2's baseline makes its error small against the depths. Keyframes after it
-    # anchor only from the stricter ``anchor_max_position_std_m``, since an anchor bends the
+    # anchor only from the stricter ``AnchorOptions.max_position_std_m``, since an anchor bends the
     # map to itself. (Measured behind a wide lens: docs/notes/2026-12-05-tracker-options.md.)
     max_position_std_m: float = 0.010
     # The pair's baseline as its two target poses measure it (their position covariances
@@ -135,113 +137,185 @@ class BundleOptions:
 
 
 @dataclass(frozen=True)
-class TrackerOptions:
-    features: FeatureOptions = field(default_factory=FeatureOptions)
-    init: InitOptions = field(default_factory=InitOptions)
-    bundle: BundleOptions = field(default_factory=BundleOptions)
-    # PnP on map points
-    pnp_reproj_px: float = 2.0  # RANSAC inlier threshold
-    pnp_min_reproj_px: float = 0.5  # the robust refinement threshold never goes below this
-    pnp_iterations: int = 60
-    min_pnp_inliers: int = 20  # fewer inliers: the frame has no pose (lost)
-    # keyframes
-    keyframe_baseline_ratio: float = 0.05  # baseline / median depth since the last keyframe
-    anchored_keyframe_baseline_ratio: float = 0.015  # the same while the target is trusted:
-    # anchored keyframes are what holds the map in the target frame, so take more of them
-    keyframe_tracked_ratio: float = 0.8  # map points still tracked / at the last keyframe
-    keyframe_min_points: int = 150  # fewer tracked map points: make a keyframe now
-    keyframe_starving_points: int = 100  # fewer still: a keyframe on every frame (not every other)
+class PnpOptions:
+    """The pose of a frame from the map points it tracks (RANSAC PnP, then a robust refinement)."""
+
+    reproj_px: float = 2.0  # RANSAC inlier threshold
+    min_reproj_px: float = 0.5  # the robust refinement threshold never goes below this
+    iterations: int = 60
+    min_inliers: int = 20  # fewer inliers: the frame has no pose (lost)
+
+
+@dataclass(frozen=True)
+class KeyframeOptions:
+    """When a frame becomes a keyframe, and how many the map keeps."""
+
+    baseline_ratio: float = 0.05  # baseline / median depth since the last keyframe
+    # the same while the target is trusted: anchored keyframes are what holds the map in
+    # the target frame, so take more of them
+    anchored_baseline_ratio: float = 0.015
+    tracked_ratio: float = 0.8  # map points still tracked / at the last keyframe
+    min_points: int = 150  # fewer tracked map points: make a keyframe now
+    starving_points: int = 100  # fewer still: a keyframe on every frame (not every other)
+    # older keyframes and the points only they saw are culled (but LoopOptions.kept_keyframes
+    # of them, with loop closure)
+    max_kept: int = 40
+
+
+@dataclass(frozen=True)
+class TriangulationOptions:
+    """New map points from a track's keyframes."""
+
     # a point's parallax before it is triangulated: low enough that a camera walking forwards
     # and turning keeps its map stocked; bundle adjustment then refines the depths with more views
-    triangulation_min_parallax_deg: float = 0.7
-    # ...and while the map runs short (fewer than this many map points tracked: a turn,
-    # driving straight at a wall): a point of 0.3 deg has a depth some 2 % off where 0.7 deg
-    # gives 1 %, but no point at all loses the map; taken more often they cost accuracy
-    triangulation_starving_parallax_deg: float = 0.3
-    triangulation_starving_points: int = 40
-    triangulation_max_reproj_px: float = 2.0
+    min_parallax_deg: float = 0.7
+    # ...and while the map runs short (fewer than starving_points map points tracked: a
+    # turn, driving straight at a wall): a point of 0.3 deg has a depth some 2 % off where
+    # 0.7 deg gives 1 %, but no point at all loses the map; taken more often they cost accuracy
+    starving_parallax_deg: float = 0.3
+    starving_points: int = 40
+    max_reproj_px: float = 2.0
     # Two keyframes triangulate only when their baseline is at least this many times the
     # combined standard deviation of their poses (each pose's own fit: target, PnP or
     # relocalisation match), else against an older keyframe of the track that passes: below
     # it the poses' errors, not the parallax, would set the depths and so the map's scale
-    triangulation_min_baseline_sigmas: float = 1.0
-    # loop closure (Tracker.loop_keyframes / close_loop): a keyframe tracked on the map is
-    # matched against keyframes made this long ago, this near, looking this close to the
-    # same way, sharing at most this share of their points with the live tracks (the oldest few)
-    # off by default: on the randomized family it moved the runs both ways and the poses after a
-    # closure claimed far too little (docs/tracker.md, "Loop closure")
-    loop_closure: bool = False
-    loop_min_age_s: float = 10.0
-    loop_radius_m: float = 1.0
-    loop_max_angle_deg: float = 30.0
-    loop_max_shared: float = 0.2
-    loop_keyframes: int = 3
-    loop_max_drift_share: float = 0.5  # ...whose drift (Drift.grown_m) is at most this share of this frame's
-    loop_matches: int = 4  # ...and the map moved when this many matches within loop_window_s agree
-    loop_window_s: float = 5.0
-    max_keyframes: int = 40  # older keyframes and the points only they saw are culled...
-    loop_kept_keyframes: int = 60  # ...but these, spread widest over the area (Map.thin), with loop_closure
-    # target
-    anchor_max_reproj_px: float = 0.25  # a target pose fitting worse (a grazing face) anchors no keyframe
-    anchor_max_position_std_m: float = 0.005  # ...nor one whose covariance says it is this uncertain
+    min_baseline_sigmas: float = 1.0
+
+
+@dataclass(frozen=True)
+class LoopOptions:
+    """Loop closure (Tracker.loop_keyframes / close_loop): a keyframe tracked on the map is
+    matched against keyframes made min_age_s ago or more, within radius_m, looking within
+    max_angle_deg of the same way, sharing at most max_shared of their points with the live
+    tracks (the oldest ``keyframes``)."""
+
+    # off by default: on the randomized family it moved the runs both ways and the poses
+    # after a closure claimed far too little (docs/tracker.md, "Loop closure")
+    enabled: bool = False
+    min_age_s: float = 10.0
+    radius_m: float = 1.0
+    max_angle_deg: float = 30.0
+    max_shared: float = 0.2
+    keyframes: int = 3
+    max_drift_share: float = 0.5  # ...whose drift (Drift.grown_m) is at most this share of this frame's
+    matches: int = 4  # ...and the map moved when this many matches within window_s agree
+    window_s: float = 5.0
+    # with loop closure, these keyframes beyond KeyframeOptions.max_kept, spread widest over
+    # the area (Map.thin), are kept
+    kept_keyframes: int = 60
+
+
+@dataclass(frozen=True)
+class AnchorOptions:
+    """The target's poses: which anchor keyframes, and when one corrects the map."""
+
+    max_reproj_px: float = 0.25  # a target pose fitting worse (a grazing face) anchors no keyframe
+    max_position_std_m: float = 0.005  # ...nor one whose covariance says it is this uncertain
     # A camera that has never given a pose within both bounds above (a small lens, a far
     # target) is held instead to this times the surest pose and the best fit it has given
-    anchor_best_ratio: float = 2.0
-    relocalised_jump_m: float = 0.01  # a target pose this far from the tracker's: a visible jump
-    relocalised_jump_deg: float = 1.0
-    fuse_target_with_map: bool = False  # target visible: one pose from its corners and the map points
-    max_motion_m: float = 0.5  # a tracker pose further than this from the prediction is refused
+    best_ratio: float = 2.0
+    jump_m: float = 0.01  # a target pose this far from the tracker's: a visible jump
+    jump_deg: float = 1.0
+    fuse_with_map: bool = False  # target visible: one pose from its corners and the map points
+
+
+@dataclass(frozen=True)
+class MotionOptions:
+    """The motion model's prediction, the gate on a tracked pose, and coasting."""
+
+    max_m: float = 0.5  # a tracker pose further than this from the prediction is refused
     # ...or turned further than this from it: the prediction is off by the change of turn
     # rate within one frame, and 5 deg a frame is 50 deg/s at 10 fps (a pose further off is a
     # PnP on drifted points, not a turn)
-    max_motion_deg: float = 5.0
+    max_deg: float = 5.0
     max_extrapolation_s: float = 0.5  # the motion model predicts no further ahead than this
-    # too few map points in view (a turn on the spot): held on rays (pose_fit.py)
-    min_hold_rays: int = 30  # tracks without a point, agreeing with one orientation
-    min_hold_ray_fraction: float = 0.6  # ...and that share of them (fewer: parallax or movers)
-    min_hold_points: int = 8  # map points that agree, for them to hold the position too
-    hold_sigma_m: float = 0.01  # the held position's standard deviation at once...
-    hold_sigma_m_per_s: float = 0.05  # ...growing by this per second held
-    max_hold_s: float = 20.0  # longer than this on rays alone: lost
-    # lost, the wheels alone carry the last pose on for at most this long (odometry.bridge);
-    # past it the odometry's drift is the pose, and the frame is lost
-    max_bridge_s: float = 20.0
-    max_coast_s: float = 0.5  # with too few rays too, the motion model alone for this long
+    max_coast_s: float = 0.5  # with too few rays to hold on, the motion model alone for this long
     coast_accel_m_s2: float = 1.0  # ...for a robot that may change its speed by this meanwhile
     coast_angular_accel_rad_s2: float = 2.0  # ...and its turn rate by this
-    max_hold_rotation_sigma_deg: float = 0.5
-    hold_default_depth_m: float = 3.0  # the rays' prior depth when no map point is in view
     # the motion model's translation, unmeasured while held, halves in this time (a robot
     # that stops to turn on the spot, or drives on past a blank wall)
     hold_velocity_half_life_s: float = 0.2
-    track_sigma_px: float = 0.3  # a track's noise floor for covariances (KLT + alignment)
-    # the map's drift since the target was last trusted, added to a tracking pose's
-    # covariance (standard deviations); the position's grows per metre of path by the
-    # relative scale error bundle adjustment measures (hold.Drift.scale_measured)
-    drift_floor_m: float = 0.002  # never claimed better (the map agrees with the target to 1-2 mm)
-    drift_per_m: float = 0.003  # position, per metre of path, at the least
-    drift_m_per_rad: float = 0.002  # position, per radian turned
-    drift_rad_per_m: float = 0.001  # orientation, per metre of path
-    drift_rad_per_rad: float = 0.002  # orientation, per radian turned
-    # relocalisation against keyframes (ORB)
+
+
+@dataclass(frozen=True)
+class HoldOptions:
+    """Too few map points in view (a turn on the spot): the pose held on rays (pose_fit.py),
+    or bridged by the wheels when lost."""
+
+    min_rays: int = 30  # tracks without a point, agreeing with one orientation
+    min_ray_fraction: float = 0.6  # ...and that share of them (fewer: parallax or movers)
+    min_points: int = 8  # map points that agree, for them to hold the position too
+    sigma_m: float = 0.01  # the held position's standard deviation at once...
+    sigma_m_per_s: float = 0.05  # ...growing by this per second held
+    max_s: float = 20.0  # longer than this on rays alone: lost
+    # lost, the wheels alone carry the last pose on for at most this long (odometry.bridge);
+    # past it the odometry's drift is the pose, and the frame is lost
+    max_bridge_s: float = 20.0
+    max_rotation_sigma_deg: float = 0.5
+    default_depth_m: float = 3.0  # the rays' prior depth when no map point is in view
+
+
+@dataclass(frozen=True)
+class DriftOptions:
+    """The map's drift since the target was last trusted, added to a tracking pose's
+    covariance (standard deviations); the position's grows per metre of path by the
+    relative scale error bundle adjustment measures (hold.Drift.scale_measured)."""
+
+    floor_m: float = 0.002  # never claimed better (the map agrees with the target to 1-2 mm)
+    per_m: float = 0.003  # position, per metre of path, at the least
+    m_per_rad: float = 0.002  # position, per radian turned
+    rad_per_m: float = 0.001  # orientation, per metre of path
+    rad_per_rad: float = 0.002  # orientation, per radian turned
+
+
+@dataclass(frozen=True)
+class RelocOptions:
+    """Relocalisation against keyframes (ORB), and at boot on a saved map."""
+
     orb_features: int = 2000  # corners described in a lost frame
-    reloc_min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible
-    reloc_ratio: float = 0.8  # Lowe's ratio test on Hamming distances
-    reloc_reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
+    min_inliers: int = 20  # RANSAC inliers at 2 px: chance agreement of 20 is negligible
+    ratio: float = 0.8  # Lowe's ratio test on Hamming distances
+    reproj_px: float = 3.0  # RANSAC inlier threshold (a map seen anew is less exact than tracks)
     # Gauss-Newton steps aligning a match to its keyframe's patch (relocalise.py): from the
     # identity warp and a corner up to 1.4 px off, where a track carries its warp on
-    reloc_align_iterations: int = 10
-    reloc_max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused
-    reloc_boot_iterations: int = 10_000  # RANSAC samples at boot on a saved map (relocalise.py)
+    align_iterations: int = 10
+    max_position_sigma_m: float = 0.01  # a relocalisation less sure than this is refused
+    boot_iterations: int = 10_000  # RANSAC samples at boot on a saved map (relocalise.py)
     min_reference_points: int = 30  # a loaded map's points in view that give the pose alone (pose_fit.pose_from_map)
-    # a loaded map's points found again at every keyframe (Relocaliser.refind)
-    refind: bool = True
-    refind_radius_px: float = 10.0
-    refind_max_hamming: int = 60  # of 256 bits
-    refind_max_angle_deg: float = 30.0  # between the view now and the describing keyframe's
-    refind_max_scale: float = 1.5  # distance now against the describing keyframe's, either way
+
+
+@dataclass(frozen=True)
+class RefindOptions:
+    """A loaded map's points found again at every keyframe (Relocaliser.refind), and retired
+    when no longer there (Map.retire)."""
+
+    enabled: bool = True
+    radius_px: float = 10.0
+    max_hamming: int = 60  # of 256 bits
+    max_angle_deg: float = 30.0  # between the view now and the describing keyframe's
+    max_scale: float = 1.5  # distance now against the describing keyframe's, either way
     # a loaded point found in at most retire_max_found of its last retire_after_visible
-    # chances to be seen (keyframes, one per place retire_min_move_m apart) retires (Map.retire)
+    # chances to be seen (keyframes, one per place retire_min_move_m apart) retires
     retire_after_visible: int = 10
     retire_max_found: int = 1
     retire_min_move_m: float = 0.1  # between two chances of one point
+
+
+@dataclass(frozen=True)
+class TrackerOptions:
+    """The tracker's options, by concern."""
+
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    init: InitOptions = field(default_factory=InitOptions)
+    bundle: BundleOptions = field(default_factory=BundleOptions)
+    pnp: PnpOptions = field(default_factory=PnpOptions)
+    keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
+    triangulation: TriangulationOptions = field(default_factory=TriangulationOptions)
+    loop: LoopOptions = field(default_factory=LoopOptions)
+    anchor: AnchorOptions = field(default_factory=AnchorOptions)
+    motion: MotionOptions = field(default_factory=MotionOptions)
+    hold: HoldOptions = field(default_factory=HoldOptions)
+    drift: DriftOptions = field(default_factory=DriftOptions)
+    reloc: RelocOptions = field(default_factory=RelocOptions)
+    refind: RefindOptions = field(default_factory=RefindOptions)
+    track_sigma_px: float = 0.3  # a track's noise floor for covariances (KLT + alignment)

@@ -95,15 +95,15 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
     ids, RMS px, 6x6 covariance from the inliers' reprojection errors)."""
     has = world_map.mapped(tracks.ids)
     reference = has & world_map.is_reference(tracks.ids)  # a loaded map's: they alone when enough
-    has = reference if reference.sum() >= o.min_reference_points else has
+    has = reference if reference.sum() >= o.reloc.min_reference_points else has
     ids = tracks.ids[has]
-    if len(ids) < o.min_pnp_inliers:
+    if len(ids) < o.pnp.min_inliers:
         return None, len(ids), np.zeros(0, np.int64), 0.0, None
     obj = np.array([world_map.points[int(t)] for t in ids])
     img = xn[has]
     eye = np.eye(3)
-    found = pnp_ransac(obj, img, o.pnp_reproj_px / fx, o.pnp_iterations, cv2.SOLVEPNP_SQPNP)
-    if found is None or len(found[2]) < o.min_pnp_inliers:
+    found = pnp_ransac(obj, img, o.pnp.reproj_px / fx, o.pnp.iterations, cv2.SOLVEPNP_SQPNP)
+    if found is None or len(found[2]) < o.pnp.min_inliers:
         return None, 0 if found is None else len(found[2]), np.zeros(0, np.int64), 0.0, None
     rvec, tvec, inl = found
     mask = np.zeros(len(ids), bool)
@@ -120,9 +120,9 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
         # without it): a point the pose bent to fit (near the camera, on a passer-by) has
         # a small residual of its own but a large deleted one.
         err[mask] = deleted_residuals(T_c_w, obj[mask], img[mask], fx)
-        spread = robust_sigma(err[mask], 0.0, times=3.0) if mask.any() else o.pnp_reproj_px
-        mask = (z > 0) & (err <= min(o.pnp_reproj_px, max(o.pnp_min_reproj_px, spread)))
-        if mask.sum() < o.min_pnp_inliers:
+        spread = robust_sigma(err[mask], 0.0, times=3.0) if mask.any() else o.pnp.reproj_px
+        mask = (z > 0) & (err <= min(o.pnp.reproj_px, max(o.pnp.min_reproj_px, spread)))
+        if mask.sum() < o.pnp.min_inliers:
             return None, int(mask.sum()), ids[~mask], 0.0, None
     pose = T_c_w.inverse()
     drop = ids[~mask]
@@ -138,9 +138,9 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
 
 def beyond_motion(pose: Transform, prediction: Transform, options: TrackerOptions) -> bool:
     """Is ``pose`` further from the motion model's ``prediction`` than a tracker pose may be
-    (``max_motion_m``, ``max_motion_deg``)?"""
-    return bool(np.linalg.norm(pose.translation - prediction.translation) > options.max_motion_m
-                or np.degrees(pose.rotation_angle_to(prediction)) > options.max_motion_deg)
+    (``motion.max_m``, ``motion.max_deg``)?"""
+    return bool(np.linalg.norm(pose.translation - prediction.translation) > options.motion.max_m
+                or np.degrees(pose.rotation_angle_to(prediction)) > options.motion.max_deg)
 
 
 def pose_from_target_and_map(world_map: Map, corners_world: np.ndarray, corners_xn: np.ndarray, tracks: Tracks,

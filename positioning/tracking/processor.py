@@ -201,7 +201,7 @@ class TrackingProcessor:
             want = result.estimate is not None and not bridged
         else:
             want = out.want_features or self.tracker.holding  # held: fresh corners keep the rays coming
-            if out.keyframe and self.options.tracker.loop_closure and _source(result) is PoseSource.MAP:
+            if out.keyframe and self.options.tracker.loop.enabled and _source(result) is PoseSource.MAP:
                 result, frame = self._close_loop(image, frame, result)
         if result.estimate is not None and not self.tracker.holding and not bridged:
             self._lost_frames = 0
@@ -245,7 +245,7 @@ class TrackingProcessor:
         new = self.front_end.detect(image, self.target_outline(pose))
         frame = self.tracker.add_tracks(frame, new)
         if keyframe and self.tracker.map.last_keyframe is not None:
-            if self.tracker.map.fixed and result.estimate is not None and self.options.tracker.refind:
+            if self.tracker.map.fixed and result.estimate is not None and self.options.tracker.refind.enabled:
                 # on a loaded map: its points found again, and those not found where they should be retired
                 again = self.relocaliser.refind(image, self.tracker.map, result.estimate.T_world_camera,
                                                 self.front_end.ids)

@@ -54,14 +54,14 @@ class Relocaliser:
         view = ahead_mask(calibration)  # None: every pixel looks ahead
         # at the features' detect_scale, as find_corners takes it (worked out once)
         self._view_mask = None if view is None else view_at_scale(view, max(1, options.features.detect_scale))
-        self._orb = cv2.ORB_create(nfeatures=options.orb_features, patchSize=ORB_PATCH_PX,
+        self._orb = cv2.ORB_create(nfeatures=options.reloc.orb_features, patchSize=ORB_PATCH_PX,
                                    edgeThreshold=ORB_PATCH_PX)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         alignment = options.features.alignment
         # from the identity and a corner up to 1.4 px off, not a warp carried on from the
         # last frame as a track's: more Gauss-Newton steps than a track takes
         self._aligner = None if alignment is None else PatchAligner(
-            dataclasses.replace(alignment, iterations=options.reloc_align_iterations))
+            dataclasses.replace(alignment, iterations=options.reloc.align_iterations))
         self._reference_of: Map | None = None  # the map _reference_arrays are of
         self._reference_arrays: tuple = ()
 
@@ -91,12 +91,12 @@ class Relocaliser:
         millimetres off, and keeps that error (four 10 s runs of bench boot along the lap:
         RMS 4.7, 7.8, 3.1, 5.6 mm without it, 3.9, 3.2, 2.7, 4.2 with it). A point should
         be seen when it projects into the image in front of the camera, viewed within
-        ``refind_max_angle_deg`` of the keyframe that described it and from a distance
-        within ``refind_max_scale`` times its (in the room as mapped, 80 % of those
+        ``refind.max_angle_deg`` of the keyframe that described it and from a distance
+        within ``refind.max_scale`` times its (in the room as mapped, 80 % of those
         within 5 deg are found, 53 % at 20-30 deg, 49 % at 1.25-1.5x); one ``tracked``
-        already is found. For the others: the corners within ``refind_radius_px`` of the
+        already is found. For the others: the corners within ``refind.radius_px`` of the
         projection, the nearest in Hamming distance to its descriptor found if within
-        ``refind_max_hamming``, and followed if clearly nearer than the second (Lowe's
+        ``refind.max_hamming``, and followed if clearly nearer than the second (Lowe's
         ratio) and claimed by no other point. ~15 ms a keyframe at 1280x1024 (2000
         corners described)."""
         o = self.options
@@ -111,8 +111,8 @@ class Relocaliser:
         cosine = np.einsum("ij,ij->i", rays_now, rays_then) / (
             np.linalg.norm(rays_now, axis=1) * np.linalg.norm(rays_then, axis=1) + 1e-12)
         scale = np.linalg.norm(rays_now, axis=1) / np.maximum(np.linalg.norm(rays_then, axis=1), 1e-9)
-        visible = (in_camera[:, 2] > 0.1) & (cosine > np.cos(np.radians(o.refind_max_angle_deg))) & \
-            (scale < o.refind_max_scale) & (scale > 1.0 / o.refind_max_scale)
+        visible = (in_camera[:, 2] > 0.1) & (cosine > np.cos(np.radians(o.refind.max_angle_deg))) & \
+            (scale < o.refind.max_scale) & (scale > 1.0 / o.refind.max_scale)
         pixels = np.full((len(ids), 2), -1.0)
         pixels[visible] = project(in_camera[visible], self.calibration)
         margin, w, h = ORB_PATCH_PX, self.calibration.width, self.calibration.height
@@ -129,17 +129,17 @@ class Relocaliser:
         bits = np.unpackbits(found, axis=1)
         claims: dict[int, list[int]] = {}
         present = []  # a corner like it near: there (if not told apart from a neighbour)
-        near = cKDTree(at).query_ball_point(pixels[wanted], o.refind_radius_px)
+        near = cKDTree(at).query_ball_point(pixels[wanted], o.refind.radius_px)
         for row, candidates in zip(np.flatnonzero(wanted), near, strict=True):
             if not candidates:
                 continue
             distance = np.count_nonzero(bits[candidates] != np.unpackbits(descriptors[row]), axis=1)
             order = np.argsort(distance)
             best = int(distance[order[0]])
-            if best > o.refind_max_hamming:
+            if best > o.refind.max_hamming:
                 continue
             present.append(int(row))
-            if len(order) == 1 or best < o.reloc_ratio * distance[order[1]]:
+            if len(order) == 1 or best < o.reloc.ratio * distance[order[1]]:
                 claims.setdefault(candidates[int(order[0])], []).append(int(row))
         rows = np.array([r[0] for r in claims.values() if len(r) == 1], dtype=np.int64)
         corner = np.array([c for c, r in claims.items() if len(r) == 1], dtype=np.int64)
@@ -190,7 +190,7 @@ class Relocaliser:
         (6 px apart: the greedy spacing of the tracker's own detection would pick a
         different subset of corners in a different view)."""
         o = self.options
-        corners = find_corners(image, o.orb_features, o.features, self._view_mask, min_distance_px=6)
+        corners = find_corners(image, o.reloc.orb_features, o.features, self._view_mask, min_distance_px=6)
         keypoints, descriptors = self._describe(image, corners, np.arange(len(corners))) if len(corners) else ([], None)
         if descriptors is None or not keypoints:
             return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
@@ -207,7 +207,7 @@ class Relocaliser:
                    among: list[Keyframe] | None = None, excluding: set[int] | None = None) -> Relocalisation | None:
         """The pose of ``image`` in the map, or None when too few matches agree. ``thorough``
         (at boot on a saved map, where nothing else can give a pose): RANSAC with
-        ``reloc_boot_iterations`` P3P samples instead of 500 SQPnP ones (bench boot: a view
+        ``reloc.boot_iterations`` P3P samples instead of 500 SQPnP ones (bench boot: a view
         15-20 deg from every keyframe has 10-25 % of its matches right; 500 samples found
         none, 10,000 found 16-28 inliers; P3P's samples are 4x cheaper: ~100 ms). ``among``
         matches against those keyframes' points only, less the ``excluding`` ones (a loop
@@ -223,21 +223,21 @@ class Relocaliser:
                         patches[int(point_id)] = kf.patches[k]
                     else:
                         patches.pop(int(point_id), None)
-        if len(known) < o.reloc_min_inliers:
+        if len(known) < o.reloc.min_inliers:
             return None
         map_ids = np.array(list(known), dtype=np.int64)
         map_descriptors = np.array(list(known.values()), dtype=np.uint8)
         at, descriptors = self._frame_features(image)
-        if len(at) < o.reloc_min_inliers:
+        if len(at) < o.reloc.min_inliers:
             return None
         pairs = self._matcher.knnMatch(descriptors, map_descriptors, k=2)
         best: dict[int, tuple[float, int]] = {}  # map index -> (distance, keypoint index)
         for pair in pairs:
-            if len(pair) == 2 and pair[0].distance < o.reloc_ratio * pair[1].distance:
+            if len(pair) == 2 and pair[0].distance < o.reloc.ratio * pair[1].distance:
                 m = pair[0]
                 if m.trainIdx not in best or m.distance < best[m.trainIdx][0]:
                     best[m.trainIdx] = (m.distance, m.queryIdx)
-        if len(best) < o.reloc_min_inliers:
+        if len(best) < o.reloc.min_inliers:
             return None
         train = np.array(list(best), dtype=np.int64)
         query = np.array([best[t][1] for t in train], dtype=np.int64)
@@ -246,10 +246,10 @@ class Relocaliser:
         pixels, precise = self._aligned(image, ids, pixels, patches)
         obj = np.array([world_map.points[int(i)] for i in ids])
         xn = undistort(pixels, self.calibration)
-        threshold = o.reloc_reproj_px / self.calibration.fx
-        iterations, solver = (o.reloc_boot_iterations, cv2.SOLVEPNP_P3P) if thorough else (500, cv2.SOLVEPNP_SQPNP)
+        threshold = o.reloc.reproj_px / self.calibration.fx
+        iterations, solver = (o.reloc.boot_iterations, cv2.SOLVEPNP_P3P) if thorough else (500, cv2.SOLVEPNP_SQPNP)
         found = pnp_ransac(obj, xn, threshold, iterations, solver)
-        if found is None or len(found[2]) < o.reloc_min_inliers:
+        if found is None or len(found[2]) < o.reloc.min_inliers:
             return None
         rvec, tvec, inl = found
         # the pose, the tracks followed on and the keyframe made here from the matches as
@@ -257,14 +257,14 @@ class Relocaliser:
         # tracks 0.05 px off: its points cut as outliers, the map then rebuilt on the
         # relocalised poses alone and running away, blank_wall 22 mm -> 2 m RMS)
         inl = inl[precise[inl]]
-        if len(inl) < o.reloc_min_inliers:
+        if len(inl) < o.reloc.min_inliers:
             return None
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], xn[inl], np.eye(3), None, rvec.reshape(3, 1), tvec.reshape(3, 1))
         T_camera_world = Transform.from_rvec_tvec(rvec, tvec)
         proj, z = project_normalised(T_camera_world, obj)
         good = (z > 0) & (np.linalg.norm(proj - xn, axis=1) <= threshold) & precise
         pose = T_camera_world.inverse()
-        if good.sum() < o.reloc_min_inliers or not np.all(np.isfinite(pose.matrix())):
+        if good.sum() < o.reloc.min_inliers or not np.all(np.isfinite(pose.matrix())):
             return None
         # A wrong relocalisation is worse than none: matches of far points in a narrow view
         # can agree on a pose that is centimetres off (measured: 60 mm on blank_wall, its
@@ -272,6 +272,6 @@ class Relocaliser:
         err_px = np.linalg.norm(proj[good] - xn[good], axis=1) * self.calibration.fx
         fit = fit_pose(pose, obj[good], xn[good], None, fx=self.calibration.fx,
                        sigma_px=max(float(np.sqrt(np.mean(err_px**2))), o.track_sigma_px), iterations=0)
-        if fit is None or np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[:3, :3]))) > o.reloc_max_position_sigma_m:
+        if fit is None or np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[:3, :3]))) > o.reloc.max_position_sigma_m:
             return None
         return Relocalisation(pose, ids[good], pixels[good], len(best), fit.covariance)

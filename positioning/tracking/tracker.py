@@ -152,9 +152,9 @@ class Tracker(MapBeginning, LoopClosure):
             self._best_target_fit_px = min(self._best_target_fit_px, trusted.reproj_rms_px)
             self._surest_target_m = min(self._surest_target_m, sigma)
             self._bounds_reached = self._bounds_reached or (
-                sigma <= self.options.anchor_max_position_std_m
-                and trusted.reproj_rms_px <= self.options.anchor_max_reproj_px)
-            if self.options.bundle.floor.enabled and self._anchors(trusted, self.options.anchor_max_position_std_m):
+                sigma <= self.options.anchor.max_position_std_m
+                and trusted.reproj_rms_px <= self.options.anchor.max_reproj_px)
+            if self.options.bundle.floor.enabled and self._anchors(trusted, self.options.anchor.max_position_std_m):
                 # the frames the floor is found in (floor.py)
                 self._target_views.append(TargetView(trusted.T_world_camera, tracks.ids.copy(), xn.copy()))
                 self._floor_due = True
@@ -200,10 +200,10 @@ class Tracker(MapBeginning, LoopClosure):
                 self.map.correct(pose @ before.inverse(), self._drift.grown_m)
                 log.debug("tracker.corrected", jump_m=float(np.linalg.norm(pose.translation - before.translation)))
                 state = PoseState.RELOCALISED if self.jumped(before, pose) else state
-            if tracked is not None and state is PoseState.TARGET and self.options.fuse_target_with_map:
+            if tracked is not None and state is PoseState.TARGET and self.options.anchor.fuse_with_map:
                 fused = pose_from_target_and_map(self.map, trusted.corners_world,
                                                  undistort(trusted.corners_px, self.calibration), tracks, xn, pose,
-                                                 self.options.pnp_reproj_px, self.fx)
+                                                 self.options.pnp.reproj_px, self.fx)
                 pose = fused if fused is not None and not self.jumped(fused, pose) else pose
             estimate = PoseEstimate(pose, state, trusted.planes, trusted.tag_ids, trusted.reproj_rms_px,
                                     trusted.published_covariance, PoseSource.TARGET)
@@ -216,9 +216,9 @@ class Tracker(MapBeginning, LoopClosure):
             self.lost, self._target_seen = True, False
             self.motion.stop()
             self._hold.end()
-            detail = f"{inliers} map points agree with a pose, {self.options.min_pnp_inliers} needed"
+            detail = f"{inliers} map points agree with a pose, {self.options.pnp.min_inliers} needed"
             bridged = None if self.odometry is None or last is None else self.odometry.bridge(
-                last, self.motion.stamp, self.motion.covariance, stamp_ns, self.options.max_bridge_s)
+                last, self.motion.stamp, self.motion.covariance, stamp_ns, self.options.hold.max_bridge_s)
             if bridged is not None:  # published, and nothing else: the map waits for the camera
                 estimate = PoseEstimate(bridged[0], PoseState.TRACKING, 0, (), 0.0, bridged[1], PoseSource.ODOMETRY)
                 return TrackerOutput(FrameResult(estimate, "bridged", f"wheel odometry; {detail}"), False, drop,
@@ -353,26 +353,26 @@ class Tracker(MapBeginning, LoopClosure):
         """Is this target pose sure enough to hold a keyframe (and so the map) in place? A less sure one
         is published, not bent to; with no map to track on (before one exists, or beginning
         again) ``init.max_position_std_m`` (none is worse). ``bound`` asks for another.
-        A camera that has given target poses, none within ``anchor_max_position_std_m`` and
-        ``anchor_max_reproj_px`` (a small lens, a far target), is held to what it can do
-        where that is looser: ``anchor_best_ratio`` times the surest pose and the best
+        A camera that has given target poses, none within ``anchor.max_position_std_m`` and
+        ``anchor.max_reproj_px`` (a small lens, a far target), is held to what it can do
+        where that is looser: ``anchor.best_ratio`` times the surest pose and the best
         corner fit it has given."""
         o = self.options
-        fit_bound, reach = o.anchor_max_reproj_px, 0.0
+        fit_bound, reach = o.anchor.max_reproj_px, 0.0
         if not self._bounds_reached and np.isfinite(self._surest_target_m):
-            fit_bound = max(fit_bound, o.anchor_best_ratio * self._best_target_fit_px)
-            reach = o.anchor_best_ratio * self._surest_target_m
+            fit_bound = max(fit_bound, o.anchor.best_ratio * self._best_target_fit_px)
+            reach = o.anchor.best_ratio * self._surest_target_m
         if target is None or target.reproj_rms_px > fit_bound:
             return False
         if bound is None:
             beginning = not self.initialised or self._beginning_again
-            bound = o.init.max_position_std_m if beginning else o.anchor_max_position_std_m
+            bound = o.init.max_position_std_m if beginning else o.anchor.max_position_std_m
         return target.covariance is None or position_sigma(target.covariance) <= max(bound, reach)
 
     def jumped(self, a: Transform, b: Transform) -> bool:
         """``a`` and ``b`` further apart than ``relocalised_jump_*``: a visible correction."""
-        return (np.linalg.norm(a.translation - b.translation) > self.options.relocalised_jump_m
-                or np.degrees(a.rotation_angle_to(b)) > self.options.relocalised_jump_deg)
+        return (np.linalg.norm(a.translation - b.translation) > self.options.anchor.jump_m
+                or np.degrees(a.rotation_angle_to(b)) > self.options.anchor.jump_deg)
 
     def _maybe_keyframe(self, frame: TrackedFrame, pose: Transform, sigma: float, trusted: TargetObservation | None,
                         inliers: int, forced: bool) -> Keyframe | None:
@@ -388,13 +388,13 @@ class Tracker(MapBeginning, LoopClosure):
             with_points = [self.map.points[int(t)] for t in tracks.ids if int(t) in self.map.points]
             depth = np.median(pose.inverse().apply(np.array(with_points))[:, 2]) if with_points else 1.0
             baseline = np.linalg.norm(pose.translation - last.T_world_camera.translation) / max(depth, 1e-3)
-            ratio = o.anchored_keyframe_baseline_ratio if trusted is not None else o.keyframe_baseline_ratio
+            ratio = o.keyframes.anchored_baseline_ratio if trusted is not None else o.keyframes.baseline_ratio
             needed = (baseline > ratio
-                      or inliers < o.keyframe_tracked_ratio * self._kf_points_at_insert
-                      or inliers < o.keyframe_min_points)
+                      or inliers < o.keyframes.tracked_ratio * self._kf_points_at_insert
+                      or inliers < o.keyframes.min_points)
             # running short of map points (a turn carries them out of view): a keyframe every
             # frame, so each new track is triangulated as soon as its parallax allows
-            starving = inliers < o.keyframe_starving_points
+            starving = inliers < o.keyframes.starving_points
             if not needed or (self._frames_since_keyframe < 2 and not starving):
                 return None
         anchor = trusted if self._anchors(trusted) else None
@@ -404,15 +404,15 @@ class Tracker(MapBeginning, LoopClosure):
         kf.position_sigma_m, kf.drift_m = sigma, self._drift.grown_m
         kf.anchor_covariance = anchor.position_covariance if anchor is not None else None
         self._frames_since_keyframe = 0
-        self.map.triangulate(kf, self.fx, o.triangulation_starving_parallax_deg
-                             if inliers < o.triangulation_starving_points else o.triangulation_min_parallax_deg,
-                             o.triangulation_max_reproj_px, o.triangulation_min_baseline_sigmas)
+        self.map.triangulate(kf, self.fx, o.triangulation.starving_parallax_deg
+                             if inliers < o.triangulation.starving_points else o.triangulation.min_parallax_deg,
+                             o.triangulation.max_reproj_px, o.triangulation.min_baseline_sigmas)
         self._kf_points_at_insert = int(self.map.mapped(kf.track_ids).sum())
         live = {int(t) for t in tracks.ids}
-        if o.loop_closure:  # places left behind stay, a few, for a loop to close on
-            self.map.thin(o.max_keyframes + o.loop_kept_keyframes, o.max_keyframes, live, keep_fixed=True)
+        if o.loop.enabled:  # places left behind stay, a few, for a loop to close on
+            self.map.thin(o.keyframes.max_kept + o.loop.kept_keyframes, o.keyframes.max_kept, live, keep_fixed=True)
         else:
-            self.map.cull(o.max_keyframes, live)
+            self.map.cull(o.keyframes.max_kept, live)
         self._schedule_bundle()
         return kf
 
@@ -422,7 +422,7 @@ class Tracker(MapBeginning, LoopClosure):
             self._bundle_due = True  # one at a time: the next run starts when this one ends
             return
         self._bundle_due = False
-        problem = bundle.build_problem(self.map, self.options.bundle, self.options.max_keyframes, self.floor)
+        problem = bundle.build_problem(self.map, self.options.bundle, self.options.keyframes.max_kept, self.floor)
         if problem is not None and problem.held_by_target and self._floor_due and self.options.bundle.floor.enabled:
             self._floor_due = False
             # the target is in view: the floor as the frames it posed show it
