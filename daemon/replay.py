@@ -3,7 +3,9 @@ process, every frame in order: ``track_sequence``. It is what ``cubeloc track`` 
 command adds its outputs: TUM, pose documents, MCAP, map, plot, ATE), and what the benchmarks
 and the tests replay. With ``ProcessorOptions.in_frame_loop()`` (the default) bundle
 adjustment runs in the frame loop, so the same frames give the same poses. ``pose_images``
-is the single-frame counterpart (``cubeloc pose``): each image's target pose on its own."""
+is the single-frame counterpart (``cubeloc pose``): each image's target pose on its own;
+``calibrate_mount`` solves the camera's mount from a recorded drive
+(``cubeloc calibrate-mount``)."""
 
 from __future__ import annotations
 
@@ -80,6 +82,122 @@ def pose_images(paths: list[Path], calibration: CameraCalibration, target: Targe
     for seq, path in enumerate(paths):
         processor.reset()  # images are independent views
         yield path, processor.process(read_image_sized(path, calibration.width, calibration.height), 0, seq)
+
+
+MEASURED_SOURCES = ("target", "map", "relocalised")  # the pose sources a mount is solved from
+
+
+@dataclass(frozen=True)
+class MountDrive:
+    """The camera's mount solved from a drive (``calibrate_mount``): the solution, how much
+    of the drive went into it, and what it could not use (``warnings``)."""
+
+    result: object  # positioning.mount.MountResult
+    poses: int  # camera poses within the odometry's span
+    samples: int  # odometry samples
+    warnings: tuple[str, ...]
+
+    def table(self) -> str:
+        """The ``[frames.base_from_camera]`` TOML table, its uncertainty and what the drive
+        measured besides as comments (what ``cubeloc calibrate-mount`` prints and writes)."""
+        from scipy.spatial.transform import Rotation
+
+        result = self.result
+        mount = result.T_base_camera
+        rpy = Rotation.from_matrix(mount.rotation).as_euler("xyz", degrees=True)
+        sigma_m, sigma_deg = result.sigma()
+        z_note = (f"{sigma_m[2] * 1000:.1f} mm, {result.height_source}" if result.observed["z"]
+                  else "NOT OBSERVED (a drive on the floor cannot see it): measure the camera's height above the "
+                       "base's origin and set it, or give --target with a cube on the floor, or --height")
+        return (
+            "[frames.base_from_camera]\n"
+            f"xyz = [{mount.translation[0]:.4f}, {mount.translation[1]:.4f}, {mount.translation[2]:.4f}]\n"
+            f"rpy_deg = [{rpy[0]:.3f}, {rpy[1]:.3f}, {rpy[2]:.3f}]\n"
+            f"# standard deviations: x {sigma_m[0] * 1000:.1f} mm, y {sigma_m[1] * 1000:.1f} mm, z {z_note}\n"
+            f"# rotation about the base's x {sigma_deg[0]:.2f} deg, y {sigma_deg[1]:.2f} deg, z {sigma_deg[2]:.2f} deg\n"
+            f"# the wheels measured {result.distance_scale:.4f} times the distance and {result.turn_scale:.4f} times "
+            f"the turn the camera saw, and drifted {result.heading_drift_deg_s:+.3f} deg/s in heading\n"
+            + ("" if result.map_scale is None else
+               f"# the map away from the target: {result.map_scale:.4f} times the target's scale (sigma "
+               f"{100 * result.map_scale_sigma:.1f} %, from the {result.target_pairs} stretches the target measured; "
+               "in the lever's standard deviations)\n")
+        )
+
+
+def calibrate_mount(poses: Path, odometry: Path, frames, pair_seconds: float = 1.0, height: float | None = None,
+                    target: Path | None = None, base_height: float = 0.0) -> MountDrive:
+    """The camera's mount on the robot from a drive (positioning/mount.py): the camera poses
+    of ``poses`` (cubeloc.pose/3 documents; those the camera measured: target, map,
+    relocalised) against the wheel odometry of ``odometry`` (cubeloc.odometry/1), compared
+    over stretches of ``pair_seconds``. The lever's z is ``height`` when given, else the
+    camera's height above the floor a cube ``target`` stands on (``frames``' up) less
+    ``base_height``, else unobserved. A file that cannot be used raises ``InputFileError``."""
+    from cubeloc.daemon.odometry_in import read_odometry_file
+    from cubeloc.positioning.mount import make_pairs, solve_mount
+    from cubeloc.positioning.tracking.odometry import OdometryBuffer
+
+    camera = _measured_poses(poses)
+    rows = read_odometry_file(odometry)
+    if len(rows) < 2:
+        raise InputFileError(f"{odometry}: {len(rows)} odometry samples, at least 2 needed")
+    buffer = OdometryBuffer(capacity=len(rows))
+    for _, stamp, position, orientation in sorted(rows, key=lambda r: r[1]):
+        buffer.add(stamp, position, orientation)
+    first, last = rows[0][1], max(r[1] for r in rows)
+    inside = [c for c in camera if first <= c[0] <= last]
+    if not inside:
+        raise InputFileError(f"{odometry}: its samples ({first} to {last} ns) do not cover any pose of "
+                             f"{poses} ({camera[0][0]} to {camera[-1][0]} ns): not recorded together")
+    height_sigma, height_source, warnings = 0.0, "given (--height)", []
+    if height is None and target is not None:
+        height, height_sigma, height_source = _height_from_cube(
+            target, frames, np.array([c[1].translation for c in inside]), base_height, warnings)
+    pairs = make_pairs(inside, buffer.pose_at, pair_seconds)
+    result = solve_mount(pairs, height, height_source, height_sigma_m=height_sigma)
+    return MountDrive(result, len(inside), len(rows), tuple(warnings))
+
+
+def _measured_poses(path: Path) -> list:
+    """(stamp_ns, T_world_camera, measured by the target) of the poses the camera
+    measured, in time order."""
+    from cubeloc.jsonlines import read_json_lines
+    from cubeloc.positioning.geometry import Transform
+
+    def parse(doc: dict):
+        if doc.get("schema") not in ("cubeloc.pose/1", "cubeloc.pose/3"):
+            raise ValueError(f"schema {doc.get('schema')!r}")
+        source = doc.get("source", "target" if doc.get("state") == "target" else "map")  # /1 has no source
+        if source not in MEASURED_SOURCES:
+            return None
+        pose = Transform.from_quaternion(np.array(doc["position"], float), np.array(doc["orientation"], float))
+        if not np.all(np.isfinite(pose.translation)):
+            raise ValueError("not finite")
+        return int(doc["stamp_ns"]), pose, source == "target"
+
+    camera = read_json_lines(path, parse, "cubeloc.pose/3 (camera)")
+    if not camera:
+        raise InputFileError(f"{path}: no pose the camera measured (target, map or relocalised)")
+    return sorted(camera, key=lambda c: c[0])
+
+
+def _height_from_cube(target: Path, frames, positions: np.ndarray, base_height: float,
+                      warnings: list[str]) -> tuple[float | None, float, str]:
+    """The lever's z from a cube standing on the floor: the camera's height above the
+    cube's bottom face (its centre less half its side along the map's up), less
+    ``base_height``; with its spread over the drive as its standard deviation."""
+    from cubeloc.positioning.mount import camera_height
+    from cubeloc.positioning.target import load_target
+
+    cube = load_target(target)
+    if cube.cube is None:
+        warnings.append(f"{target} is not a cube: it says nothing of the floor, so the lever's z is not observed "
+                        "(give --height)")
+        return None, 0.0, "unobserved"
+    up = frames.up_in_target
+    height, spread = camera_height(positions, up, -up * cube.cube.side_m / 2.0)
+    source = (f"the camera {height:.3f} m above the cube's floor (spread {spread * 1000:.1f} mm over the drive) "
+              f"less --base-height {base_height:g}")
+    return height - base_height, spread, source
 
 
 class OdometryReplay:

@@ -20,8 +20,6 @@ import math
 import sys
 from pathlib import Path
 
-MEASURED_SOURCES = ("target", "map", "relocalised")
-
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -54,16 +52,11 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import numpy as np
-    from scipy.spatial.transform import Rotation
-
     from cubeloc.atomic import atomic_write_text
     from cubeloc.daemon.commands import check_out
     from cubeloc.daemon.config import Config, load_config
-    from cubeloc.daemon.odometry_in import read_odometry_file
+    from cubeloc.daemon.replay import calibrate_mount
     from cubeloc.errors import InputFileError
-    from cubeloc.positioning.mount import camera_height, make_pairs, solve_mount
-    from cubeloc.positioning.tracking.odometry import OdometryBuffer
 
     for name, value in (("--height", args.height), ("--base-height", args.base_height)):
         if value is not None and (not math.isfinite(value) or abs(value) > 5.0):
@@ -73,49 +66,16 @@ def run(args) -> int:
     if args.out:
         check_out(Path(args.out), args.force)
     config = load_config(args.config) if args.config else Config()
-    frames = config.frames.robot_frames()
-    camera = _read_poses(Path(args.poses))
-    rows = read_odometry_file(args.odometry)
-    if len(rows) < 2:
-        raise InputFileError(f"{args.odometry}: {len(rows)} odometry samples, at least 2 needed")
-    buffer = OdometryBuffer(capacity=len(rows))
-    for _, stamp, position, orientation in sorted(rows, key=lambda r: r[1]):
-        buffer.add(stamp, position, orientation)
-    first, last = rows[0][1], max(r[1] for r in rows)
-    inside = [c for c in camera if first <= c[0] <= last]
-    if not inside:
-        raise InputFileError(f"{args.odometry}: its samples ({first} to {last} ns) do not cover any pose of "
-                             f"{args.poses} ({camera[0][0]} to {camera[-1][0]} ns): not recorded together")
-    height, height_sigma, height_source = args.height, 0.0, "given (--height)"
-    if height is None and args.target:
-        height, height_sigma, height_source = _height_from_cube(
-            args, frames, np.array([c[1].translation for c in inside]), camera_height)
-    pairs = make_pairs(inside, buffer.pose_at, args.pair_seconds)
-    result = solve_mount(pairs, height, height_source, height_sigma_m=height_sigma)
-    mount = result.T_base_camera
-    rpy = Rotation.from_matrix(mount.rotation).as_euler("xyz", degrees=True)
-    sigma_m, sigma_deg = result.sigma()
-    print(f"{len(inside)} camera poses, {len(rows)} odometry samples: {result.pairs} stretches of "
+    drive = calibrate_mount(Path(args.poses), Path(args.odometry), config.frames.robot_frames(), args.pair_seconds,
+                            height=args.height, target=Path(args.target) if args.target else None,
+                            base_height=args.base_height)
+    result = drive.result
+    print(f"{drive.poses} camera poses, {drive.samples} odometry samples: {result.pairs} stretches of "
           f"{args.pair_seconds:g} s (largest turn {result.largest_turn_deg:.0f} deg), {result.used_pairs} within "
           f"their noise; residuals {result.residual_m * 1000:.1f} mm, {result.residual_deg:.2f} deg")
-    for warning in result.warnings:
+    for warning in (*drive.warnings, *result.warnings):
         print(f"warning: {warning}", file=sys.stderr)
-    z_note = (f"{sigma_m[2] * 1000:.1f} mm, {result.height_source}" if result.observed["z"]
-              else "NOT OBSERVED (a drive on the floor cannot see it): measure the camera's height above the base's "
-                   "origin and set it, or give --target with a cube on the floor, or --height")
-    table = (
-        "[frames.base_from_camera]\n"
-        f"xyz = [{mount.translation[0]:.4f}, {mount.translation[1]:.4f}, {mount.translation[2]:.4f}]\n"
-        f"rpy_deg = [{rpy[0]:.3f}, {rpy[1]:.3f}, {rpy[2]:.3f}]\n"
-        f"# standard deviations: x {sigma_m[0] * 1000:.1f} mm, y {sigma_m[1] * 1000:.1f} mm, z {z_note}\n"
-        f"# rotation about the base's x {sigma_deg[0]:.2f} deg, y {sigma_deg[1]:.2f} deg, z {sigma_deg[2]:.2f} deg\n"
-        f"# the wheels measured {result.distance_scale:.4f} times the distance and {result.turn_scale:.4f} times "
-        f"the turn the camera saw, and drifted {result.heading_drift_deg_s:+.3f} deg/s in heading\n"
-        + ("" if result.map_scale is None else
-           f"# the map away from the target: {result.map_scale:.4f} times the target's scale (sigma "
-           f"{100 * result.map_scale_sigma:.1f} %, from the {result.target_pairs} stretches the target measured; "
-           "in the lever's standard deviations)\n")
-    )
+    table = drive.table()
     print(table, end="")
     if not result.observed["z"]:
         print("warning: the lever's z is not observed; it is written as 0", file=sys.stderr)
@@ -123,47 +83,3 @@ def run(args) -> int:
         atomic_write_text(Path(args.out), table)
         print(f"wrote {args.out}")
     return 0
-
-
-def _read_poses(path: Path) -> list:
-    """(stamp_ns, T_world_camera, measured by the target) of the poses the camera
-    measured, in time order."""
-    import numpy as np
-
-    from cubeloc.errors import InputFileError
-    from cubeloc.jsonlines import read_json_lines
-    from cubeloc.positioning.geometry import Transform
-
-    def parse(doc: dict):
-        if doc.get("schema") not in ("cubeloc.pose/1", "cubeloc.pose/3"):
-            raise ValueError(f"schema {doc.get('schema')!r}")
-        source = doc.get("source", "target" if doc.get("state") == "target" else "map")  # /1 has no source
-        if source not in MEASURED_SOURCES:
-            return None
-        pose = Transform.from_quaternion(np.array(doc["position"], float), np.array(doc["orientation"], float))
-        if not np.all(np.isfinite(pose.translation)):
-            raise ValueError("not finite")
-        return int(doc["stamp_ns"]), pose, source == "target"
-
-    camera = read_json_lines(path, parse, "cubeloc.pose/3 (camera)")
-    if not camera:
-        raise InputFileError(f"{path}: no pose the camera measured (target, map or relocalised)")
-    return sorted(camera, key=lambda c: c[0])
-
-
-def _height_from_cube(args, frames, positions, camera_height) -> tuple[float | None, float, str]:
-    """The lever's z from a cube standing on the floor: the camera's height above the
-    cube's bottom face (its centre less half its side along the map's up), less
-    ``--base-height``; with its spread over the drive as its standard deviation."""
-    from cubeloc.positioning.target import load_target
-
-    target = load_target(args.target)
-    if target.cube is None:
-        print(f"warning: {args.target} is not a cube: it says nothing of the floor, so the lever's z is not "
-              "observed (give --height)", file=sys.stderr)
-        return None, 0.0, "unobserved"
-    up = frames.up_in_target
-    height, spread = camera_height(positions, up, -up * target.cube.side_m / 2.0)
-    source = (f"the camera {height:.3f} m above the cube's floor (spread {spread * 1000:.1f} mm over the drive) "
-              f"less --base-height {args.base_height:g}")
-    return height - args.base_height, spread, source
