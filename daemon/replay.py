@@ -5,7 +5,8 @@ and the tests replay. With ``ProcessorOptions.in_frame_loop()`` (the default) bu
 adjustment runs in the frame loop, so the same frames give the same poses. ``pose_images``
 is the single-frame counterpart (``cubeloc pose``): each image's target pose on its own;
 ``calibrate_mount`` solves the camera's mount from a recorded drive
-(``cubeloc calibrate-mount``)."""
+(``cubeloc calibrate-mount``), ``place_target`` a second target in the first's frame from
+images of both (``cubeloc calibrate-target --place``)."""
 
 from __future__ import annotations
 
@@ -198,6 +199,53 @@ def _height_from_cube(target: Path, frames, positions: np.ndarray, base_height: 
     source = (f"the camera {height:.3f} m above the cube's floor (spread {spread * 1000:.1f} mm over the drive) "
               f"less --base-height {base_height:g}")
     return height - base_height, spread, source
+
+
+MIN_VIEWS_OF_BOTH = 2  # images with a pose of both targets that place one in the other's frame
+
+
+@dataclass(frozen=True)
+class Placement:
+    """A second target's pose in the first's frame, averaged over ``views`` images (None
+    with fewer than MIN_VIEWS_OF_BOTH)."""
+
+    T_first_other: object | None  # positioning.geometry.Transform
+    views: int
+    spread_mm: float  # RMS of the images' translations about the mean
+    spread_deg: float  # RMS of their rotations' angles to the mean
+
+
+def place_target(paths: list[Path], first: Target, other: Target, calibration: CameraCalibration) -> Placement:
+    """``other``'s placement in ``first``'s frame (``cubeloc calibrate-target --place``):
+    T_first_other = T_world_camera(first) @ inverse(T_world_camera(other)) per image where each
+    gives a pose of its own, averaged (rotations by their mean, translations by theirs); none
+    with fewer than MIN_VIEWS_OF_BOTH such images. Every image is read and checked
+    (``read_image_sized``) before the first is solved."""
+    from scipy.spatial.transform import Rotation
+
+    from cubeloc.positioning.geometry import Transform
+    from cubeloc.positioning.single_frame import TargetPoseProcessor
+
+    for path in paths:
+        read_image_sized(path, calibration.width, calibration.height)
+    poses = {name: TargetPoseProcessor(target, calibration) for name, target in (("first", first), ("other", other))}
+    relations = []
+    for path in paths:
+        image = read_image_sized(path, calibration.width, calibration.height)
+        found = {}
+        for name, processor in poses.items():
+            processor.reset()
+            found[name] = processor.process(image, 0, 0).estimate
+        if found["first"] is not None and found["other"] is not None:
+            relations.append(found["first"].T_world_camera @ found["other"].T_world_camera.inverse())
+    if len(relations) < MIN_VIEWS_OF_BOTH:
+        return Placement(None, len(relations), float("nan"), float("nan"))
+    rotation = Rotation.from_matrix(np.stack([r.rotation for r in relations])).mean()
+    translations = np.array([r.translation for r in relations])
+    relative = Transform(rotation.as_matrix(), translations.mean(axis=0))
+    spread_mm = float(np.sqrt(np.mean(np.sum((translations - relative.translation) ** 2, axis=1)))) * 1000
+    spread_deg = float(np.degrees(np.sqrt(np.mean([relative.rotation_angle_to(r) ** 2 for r in relations]))))
+    return Placement(relative, len(relations), spread_mm, spread_deg)
 
 
 class OdometryReplay:

@@ -88,23 +88,14 @@ def run(args) -> int:
     return 0
 
 
-MIN_VIEWS_OF_BOTH = 2
-
-
 def place(args, out: Path) -> int:
-    """``--place``: the other target's placement, T_first_other = T_world_camera(first) @
-    inverse(T_world_camera(other)) per image where each gives a pose of its own, averaged
-    (rotations by their mean, translations by theirs) with its spread reported."""
-    import numpy as np
-    from scipy.spatial.transform import Rotation
-
+    """``--place``: the other target's placement in the first's frame (``place_target``),
+    as a ``[[frames.targets]]`` entry of the map frame ``[frames]`` sets."""
     from cubeloc.atomic import atomic_write_text
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.daemon.commands.calibrate import expand_images
     from cubeloc.daemon.config import Config, load_config
-    from cubeloc.drivers.sequence import read_image_sized
-    from cubeloc.positioning.geometry import Transform
-    from cubeloc.positioning.single_frame import TargetPoseProcessor
+    from cubeloc.daemon.replay import MIN_VIEWS_OF_BOTH, place_target
     from cubeloc.positioning.target import load_target
 
     first, other = load_target(args.target), load_target(args.place)
@@ -114,31 +105,15 @@ def place(args, out: Path) -> int:
     calibration = read_camera_info(args.calib)
     T_map_first = (load_config(args.config) if args.config else Config()).frames.robot_frames().T_map_target
     paths = expand_images(args.images)
-    for path in paths:
-        read_image_sized(path, calibration.width, calibration.height)  # every image checked first
-    poses = {name: TargetPoseProcessor(target, calibration) for name, target in (("first", first), ("other", other))}
-    relations = []
-    for path in paths:
-        image = read_image_sized(path, calibration.width, calibration.height)
-        found = {}
-        for name, processor in poses.items():
-            processor.reset()
-            found[name] = processor.process(image, 0, 0).estimate
-        if found["first"] is not None and found["other"] is not None:
-            relations.append(found["first"].T_world_camera @ found["other"].T_world_camera.inverse())
-    if len(relations) < MIN_VIEWS_OF_BOTH:
-        raise InputFileError(f"{args.place}: {len(relations)} of the {len(paths)} images give a pose of both targets; "
-                             f"{MIN_VIEWS_OF_BOTH} or more needed (two faces of each in view)")
-    rotation = Rotation.from_matrix(np.stack([r.rotation for r in relations])).mean()
-    translations = np.array([r.translation for r in relations])
-    relative = Transform(rotation.as_matrix(), translations.mean(axis=0))
-    spread_mm = float(np.sqrt(np.mean(np.sum((translations - relative.translation) ** 2, axis=1)))) * 1000
-    spread_deg = float(np.degrees(np.sqrt(np.mean([relative.rotation_angle_to(r) ** 2 for r in relations]))))
-    placed = T_map_first @ relative
+    placement = place_target(paths, first, other, calibration)
+    if placement.T_first_other is None:
+        raise InputFileError(f"{args.place}: {placement.views} of the {len(paths)} images give a pose of both "
+                             f"targets; {MIN_VIEWS_OF_BOTH} or more needed (two faces of each in view)")
+    placed = T_map_first @ placement.T_first_other
     xyz = [round(float(v), 6) for v in placed.translation]
     quaternion = [round(float(v), 9) for v in placed.quaternion()]
-    block = (f"# {args.place} placed by cubeloc calibrate-target from {len(relations)} images of both targets:\n"
-             f"# spread {spread_mm:.1f} mm RMS, {spread_deg:.2f} deg RMS about the mean\n"
+    block = (f"# {args.place} placed by cubeloc calibrate-target from {placement.views} images of both targets:\n"
+             f"# spread {placement.spread_mm:.1f} mm RMS, {placement.spread_deg:.2f} deg RMS about the mean\n"
              f'[[frames.targets]]\nfile = "{Path(args.place).resolve()}"\nxyz = {xyz}\nquaternion = {quaternion}\n')
     print(block, end="")
     atomic_write_text(out, block)
