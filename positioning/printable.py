@@ -281,3 +281,36 @@ def tag_size_picture(family: str = "tag36h11", tag_id: int = 0, size_px: int = 4
     inner0, inner1 = pad + cell, pad + size_px - cell
     draw.rectangle([inner0, inner0, inner1, inner1], outline=(200, 0, 0), width=2)
     return canvas
+
+
+@dataclass(frozen=True)
+class CubeFiles:
+    """A cube's printables, in memory: ``files`` maps a file name to its bytes."""
+
+    files: dict[str, bytes]
+    faces: int
+    page_name: str  # the faces' page size
+    with_net: bool  # the unfolded net is the PDF's last page (the cube fits on A3)
+
+
+def cube_files(target: Target, dpi: float = 300.0) -> CubeFiles:
+    """What ``cubeloc generate cube`` writes for a cube target: ``cube.pdf`` (one page per
+    face at true scale, then the unfolded net when it fits on A3), ``face_<n>_id<id>.png``
+    (each face, with ``dpi`` in the file) and ``cube_layout.png`` (which tag goes where)."""
+    import io
+
+    def png(image: Image.Image, resolution: float) -> bytes:
+        buffer = io.BytesIO()
+        image.save(buffer, format="PNG", dpi=(resolution, resolution))
+        return buffer.getvalue()
+
+    sheets = face_sheets(target, dpi)
+    net = net_sheet(target, dpi)
+    pages = [sheet.page for sheet in sheets] + ([net] if net is not None else [])
+    pdf = io.BytesIO()
+    pages[0].save(pdf, format="PDF", save_all=True, append_images=pages[1:], resolution=dpi)
+    files = {"cube.pdf": pdf.getvalue()}
+    for index, sheet in enumerate(sheets):
+        files[f"face_{index}_id{sheet.tag_id}.png"] = png(sheet.face_image, dpi)
+    files["cube_layout.png"] = png(cube_layout_picture(target), 96)
+    return CubeFiles(files, len(sheets), sheets[0].page_name, net is not None)

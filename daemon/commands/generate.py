@@ -16,7 +16,6 @@ with Kalibr's ``kalibr_create_target_pdf``.
 
 from __future__ import annotations
 
-import io
 import sys
 from pathlib import Path
 
@@ -55,12 +54,6 @@ def _output_directory(out: str) -> Path:
     return directory
 
 
-def _png_bytes(image, dpi: float) -> bytes:
-    buffer = io.BytesIO()
-    image.save(buffer, format="PNG", dpi=(dpi, dpi))
-    return buffer.getvalue()
-
-
 def run_cube(args) -> int:
     from cubeloc.atomic import atomic_write_bytes, atomic_write_text
     from cubeloc.positioning import printable
@@ -75,24 +68,15 @@ def run_cube(args) -> int:
             "cubeloc generate cube prints cubes (cube: {side, tag_size, ids})"
         )
     directory = _output_directory(args.out)
-    sheets = printable.face_sheets(target, args.dpi)
-    net = printable.net_sheet(target, args.dpi)
-    pages = [sheet.page for sheet in sheets] + ([net] if net is not None else [])
-    # Render everything in memory first: a failure leaves no half set of files.
-    pdf = io.BytesIO()
-    pages[0].save(pdf, format="PDF", save_all=True, append_images=pages[1:], resolution=args.dpi)
-    files = {"cube.pdf": pdf.getvalue()}
-    for index, sheet in enumerate(sheets):
-        files[f"face_{index}_id{sheet.tag_id}.png"] = _png_bytes(sheet.face_image, args.dpi)
-    files["cube_layout.png"] = _png_bytes(printable.cube_layout_picture(target), 96)
-    for name, data in files.items():
+    printed = printable.cube_files(target, args.dpi)  # everything in memory first: no half set of files
+    for name, data in printed.files.items():
         atomic_write_bytes(directory / name, data)
     atomic_write_text(directory / "target.yaml", Path(args.target).read_text(encoding="utf-8"))
     cube = target.cube
-    net_note = ", then the unfolded net on A3 landscape" if net is not None else ""
+    net_note = ", then the unfolded net on A3 landscape" if printed.with_net else ""
     print(
-        f"wrote {directory}/cube.pdf ({len(sheets)} face pages on {sheets[0].page_name}{net_note}, "
-        f"{args.dpi:g} dpi), {len(sheets)} face PNGs, cube_layout.png, target.yaml: "
+        f"wrote {directory}/cube.pdf ({printed.faces} face pages on {printed.page_name}{net_note}, "
+        f"{args.dpi:g} dpi), {printed.faces} face PNGs, cube_layout.png, target.yaml: "
         f"cube {cube.side_m * 1000:.1f} mm, tags {cube.tag_size_m * 1000:.1f} mm (outer black border); "
         "print at 100 % (actual size) and check the 100 mm bar",
         file=sys.stdout,
