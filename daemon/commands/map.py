@@ -65,18 +65,14 @@ def _prune(args) -> int:
     from cubeloc.calib.camera_info import read_camera_info
     from cubeloc.errors import InputFileError
     from cubeloc.positioning.target import load_target
-    from cubeloc.positioning.tracking.map_file import load_map, save_map
+    from cubeloc.positioning.tracking.map_file import prune_map
 
     if args.keyframes < 2:
         raise InputFileError(f"--keyframes {args.keyframes}: at least 2")
     out = Path(args.out)
     if not out.parent.is_dir():
         raise InputFileError(f"{out}: the directory {out.parent} does not exist")
-    calibration, target = read_camera_info(args.calib), load_target(args.target)
-    world_map, _ = load_map(Path(args.map), calibration, target)
-    before = (len(world_map.keyframes), len(world_map.points))
-    world_map.thin(args.keyframes, 0, set())
-    save_map(out, world_map, calibration, target)
-    print(f"{before[0]} keyframes, {before[1]} points -> {len(world_map.keyframes)} keyframes, "
-          f"{len(world_map.points)} points in {out}")
+    before, after = prune_map(Path(args.map), out, read_camera_info(args.calib), load_target(args.target),
+                              args.keyframes)
+    print(f"{before[0]} keyframes, {before[1]} points -> {after[0]} keyframes, {after[1]} points in {out}")
     return 0

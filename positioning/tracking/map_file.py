@@ -225,3 +225,14 @@ def export_ply(path: Path, out: Path) -> tuple[int, int]:
     with atomic_open(out, "w") as handle:
         handle.write(text.getvalue())
     return len(a["points"]), len(a["kf_poses"])
+
+
+def prune_map(path: Path, out: Path, calibration: CameraCalibration, target: Target, keyframes: int
+              ) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The map of ``path`` thinned to ``keyframes`` keyframes (``Map.thin``) and saved to
+    ``out`` (``cubeloc map prune``): (keyframes, points) before and after."""
+    world_map, _ = load_map(path, calibration, target)
+    before = (len(world_map.keyframes), len(world_map.points))
+    world_map.thin(keyframes, 0, set())
+    save_map(out, world_map, calibration, target)
+    return before, (len(world_map.keyframes), len(world_map.points))
