@@ -175,3 +175,79 @@ def calibrate_views(
         camera_name=camera_name, metadata=metadata,
     )
     return CalibrationRun(calibration, solution, verdict, tuple(skipped))
+
+
+def capture_views(camera, board: BoardSpec, min_views: int, max_views: int, stop, on_frame=None,
+                  source: str = "the camera", max_timeouts: int = 10) -> tuple[list[tuple], str]:
+    """Views of ``board`` from a started ``camera`` (the camera protocol), each frame kept
+    when it is sharp and adds coverage (``calib.coverage.CoverageTracker``), until coverage
+    is good enough, the source ends, ``max_timeouts`` frame timeouts in a row, ``stop`` (a
+    threading.Event) is set or Ctrl-C. ``on_frame(stamp_ns, image, detection, offer,
+    tracker)`` sees every frame searched. Returns ([(name, image, detection)] of the kept
+    views, why capture ended)."""
+    from cubeloc.calib.coverage import CoverageTracker
+    from cubeloc.drivers.base import EndOfStream, FrameTimeout, StreamBroken
+
+    accepted: list[tuple] = []
+    tracker: CoverageTracker | None = None
+    timeouts = 0
+    try:
+        while not stop.is_set():
+            try:
+                frame = camera.next_frame(timeout_s=1.0)
+            except FrameTimeout:
+                timeouts += 1
+                if timeouts >= max_timeouts:
+                    return accepted, f"no frames from {source} for {max_timeouts} s"
+                continue
+            except EndOfStream:
+                return accepted, "end of the recorded source"
+            except StreamBroken as exc:
+                return accepted, f"camera stream broke ({exc})"
+            timeouts = 0
+            image = frame.image
+            if tracker is None:
+                size = (image.shape[1], image.shape[0])
+                tracker = CoverageTracker(board, size, min_views=min_views, max_views=max_views)
+            detection = detect_board(image, board)
+            offer = tracker.offer(detection)
+            if offer.accepted:
+                accepted.append((f"view_{len(accepted):03d}.png", image.copy(), detection))
+            if on_frame is not None:
+                on_frame(frame.stamp_ns, image, detection, offer, tracker)
+            if tracker.done:
+                return accepted, "coverage good enough"
+    except KeyboardInterrupt:
+        pass
+    return accepted, "stopped on request"
+
+
+def write_views(views_dir: Path, board: BoardSpec, accepted: list[tuple]) -> None:
+    """The kept views ([(name, image, detection)]) as PNGs and their corners
+    (``corners.yaml``) in ``views_dir``, a folder that appears whole or not at all (it
+    replaces one already there)."""
+    import os
+    import shutil
+    import tempfile
+
+    staging = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.", dir=views_dir.parent))
+    try:
+        records = []
+        for name, image, detection in accepted:
+            ok, png = cv2.imencode(".png", image)
+            if not ok:
+                raise OSError(f"cannot encode {name}")
+            data = png.tobytes()
+            (staging / name).write_bytes(data)
+            records.append(ImageRecord(name, hashlib.sha256(data).hexdigest(), image.shape[1], image.shape[0], detection))
+        save_cache(staging, board, records)
+        if views_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.old.", dir=views_dir.parent))
+            os.replace(views_dir, old / "views")
+            os.replace(staging, views_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(staging, views_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)

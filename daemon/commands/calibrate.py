@@ -22,11 +22,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import glob
-import os
-import shutil
 import signal
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -177,7 +174,12 @@ def _camera_settings(config_path: str | None):
 
 
 def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path) -> int:
-    from cubeloc.calib.pipeline import ImageDetection, calibrate_views, views_from_detections
+    from cubeloc.calib.pipeline import (
+        ImageDetection,
+        calibrate_views,
+        views_from_detections,
+        write_views,
+    )
     from cubeloc.calib.solve import MIN_VIEWS
     from cubeloc.daemon.cameras import make_camera
     from cubeloc.drivers.base import CameraBusy
@@ -203,7 +205,7 @@ def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path
                 raise CameraBusy(f"{exc}; calibrate, then start the daemon again ('systemctl start cubeloc')") from None
             serial = camera.info.serial
             camera.start()
-            accepted, ended = _capture_views(camera, board, args, stop, view)
+            accepted, ended = _capture(camera, board, args, stop, view)
         finally:
             with contextlib.suppress(Exception):
                 camera.stop()
@@ -221,91 +223,30 @@ def _run_live(args, board, options, out: Path, views_dir: Path, report_png: Path
         run = calibrate_views(
             views, (width, height), board, options, skipped=skipped, camera_name=args.camera_name, camera_serial=serial
         )
-        _write_views(views_dir, board, accepted)
+        write_views(views_dir, board, accepted)
         _write_results(run, out, report_png, views_note=f", {views_dir}/ ({len(accepted)} images + corners.yaml)")
     finally:
         signal.signal(signal.SIGTERM, previous)
     return 0
 
 
-def _capture_views(camera, board, args, stop: threading.Event, view=None) -> tuple[list[tuple], str]:
-    """Keep the frames that add coverage until done, out of frames, or asked to stop.
+def _capture(camera, board, args, stop: threading.Event, view=None) -> tuple[list[tuple], str]:
+    """``calib.pipeline.capture_views`` with the status on the terminal (rewritten in place
+    5 times a second on a terminal, else one line per kept view) and in ``view``."""
+    from cubeloc.calib.pipeline import capture_views
 
-    Returns ([(name, image, detection)], why capture ended). On a terminal the status
-    line is rewritten in place (5 times a second); otherwise one line per kept view.
-    """
-    from cubeloc.calib.coverage import CoverageTracker
-    from cubeloc.calib.detect import detect_board
-    from cubeloc.drivers.base import EndOfStream, FrameTimeout, StreamBroken
-
-    accepted: list[tuple] = []
-    tracker: CoverageTracker | None = None
-    timeouts = 0
     interactive = sys.stdout.isatty()
-    last_print = 0.0
+    last_print = [0.0]
+
+    def shown(stamp_ns, image, detection, offer, tracker) -> None:
+        if view is not None:
+            view.show(stamp_ns, image, detection, offer, tracker)
+        now = time.monotonic()
+        if offer.accepted or (interactive and now - last_print[0] > 0.2):
+            line = tracker.status_line() + ("  + " if offer.accepted else "  - ") + offer.reason
+            print(("\r" + line.ljust(160)) if interactive else line, end="" if interactive else "\n", flush=True)
+            last_print[0] = now
+
     print("capturing: move the board through the whole image, near and far, tilted; Ctrl-C to finish early", flush=True)
-    try:
-        while not stop.is_set():
-            try:
-                frame = camera.next_frame(timeout_s=1.0)
-            except FrameTimeout:
-                timeouts += 1
-                if timeouts >= MAX_TIMEOUTS:
-                    return accepted, f"no frames from {args.camera} for {MAX_TIMEOUTS} s"
-                continue
-            except EndOfStream:
-                return accepted, "end of the recorded source"
-            except StreamBroken as exc:
-                return accepted, f"camera stream broke ({exc})"
-            timeouts = 0
-            image = frame.image
-            if tracker is None:
-                size = (image.shape[1], image.shape[0])
-                tracker = CoverageTracker(board, size, min_views=args.min_views, max_views=args.max_views)
-            detection = detect_board(image, board)
-            offer = tracker.offer(detection)
-            if offer.accepted:
-                accepted.append((f"view_{len(accepted):03d}.png", image.copy(), detection))
-            if view is not None:
-                view.show(frame.stamp_ns, image, detection, offer, tracker)
-            now = time.monotonic()
-            if offer.accepted or (interactive and now - last_print > 0.2):
-                line = tracker.status_line() + ("  + " if offer.accepted else "  - ") + offer.reason
-                print(("\r" + line.ljust(160)) if interactive else line, end="" if interactive else "\n", flush=True)
-                last_print = now
-            if tracker.done:
-                return accepted, "coverage good enough"
-    except KeyboardInterrupt:
-        pass
-    return accepted, "stopped on request"
-
-
-def _write_views(views_dir: Path, board, accepted) -> None:
-    """The kept images and their corners, as a folder that appears whole or not at all."""
-    import hashlib
-
-    import cv2
-
-    from cubeloc.calib.corners_cache import ImageRecord, save_cache
-
-    staging = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.", dir=views_dir.parent))
-    try:
-        records = []
-        for name, image, detection in accepted:
-            ok, png = cv2.imencode(".png", image)
-            if not ok:
-                raise OSError(f"cannot encode {name}")
-            data = png.tobytes()
-            (staging / name).write_bytes(data)
-            records.append(ImageRecord(name, hashlib.sha256(data).hexdigest(), image.shape[1], image.shape[0], detection))
-        save_cache(staging, board, records)
-        if views_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{views_dir.name}.old.", dir=views_dir.parent))
-            os.replace(views_dir, old / "views")
-            os.replace(staging, views_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(staging, views_dir)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
+    return capture_views(camera, board, args.min_views, args.max_views, stop, shown, source=args.camera,
+                         max_timeouts=MAX_TIMEOUTS)
