@@ -1,5 +1,6 @@
 """numba compilation of positioning's few hot loops: the step profiles and their layouts
-(corner refinement, edge alignment), the edge line fits, the projection with its Jacobian.
+(corner refinement, edge alignment), the edge line fits, the projection with its Jacobian;
+and of the synthetic camera's room pass (``fakes.render._room_coordinates``, ``exact``).
 
 A loop that numpy can only do as dozens of small array operations is written once as
 plain Python over arrays and compiled here: cached on disk (``__pycache__`` beside its
