@@ -109,6 +109,7 @@ class MotionModel:
         relocalisation before this one), is the velocity, as unsure as the two poses' own
         covariances over the step (without it the next frame's KLT searches unguided, and in a
         turn loses most of the tracks the relocalisation gave back: blank_wall, 120 -> 2)."""
+        position = None if own is None else np.asarray(own, np.float64)[:3, :3]
         if self.measured is not None:
             before, before_stamp = self.measured
             dt = (stamp_ns - before_stamp) / 1e9
@@ -118,9 +119,8 @@ class MotionModel:
                     # lost, the pose before is a relocalisation's, as unsure as its match
                     previous = self.own if self.velocity is None else None
                     self.velocity = velocity(before, pose, dt)
-                    self.velocity_covariance = velocity_covariance(
-                        previous, None if own is None else np.asarray(own, np.float64)[:3, :3], dt)
-        self.own = None if own is None else np.asarray(own, np.float64)[:3, :3]
+                    self.velocity_covariance = velocity_covariance(previous, position, dt)
+        self.own = position
         self.measured = (pose, stamp_ns)
         self.last, self.stamp, self.covariance = pose, stamp_ns, covariance
         self.after_relocalisation = True
