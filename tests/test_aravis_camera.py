@@ -208,16 +208,20 @@ def test_gv_fake_restarted_mid_stream_and_the_backend_recovers(gv_fake):
 def test_frame_id_gaps_counted_when_frames_are_lost(gv_fake):
     # Two buffers and a consumer slower than the camera: Aravis has nowhere to put most
     # frames, so the camera's frame ids jump; the backend counts the frames never seen.
+    # (How many are lost depends on how fast the fake camera runs on a busy machine: 6
+    # gaps in 8 frames under the suite's load, 30 on an idle one. So frames are read until
+    # some are lost, 20 s at most, and every id missing from the span must be counted.)
     with AravisCamera(gv_fake.device_id, CameraSettings(frame_rate_hz=50.0), buffers=2) as camera:
         camera.start()
         ids = []
-        for _ in range(8):
+        deadline = time.monotonic() + 20.0
+        while len(ids) < 8 or (camera.stats.frame_id_gaps == 0 and time.monotonic() < deadline):
             ids.append(camera.next_frame(2.0).frame_id)
             time.sleep(0.1)
         stats = camera.stats
     span = ids[-1] - ids[0] + 1
     detail = f"ids {ids}, {stats}"
-    assert stats.frame_id_gaps > 10, detail
+    assert stats.frame_id_gaps > 0, detail
     assert stats.delivered + stats.frame_id_gaps <= span <= stats.delivered + stats.frame_id_gaps + stats.incomplete, detail
 
 
