@@ -267,3 +267,22 @@ def test_a_late_solution_carries_the_keyframes_and_points_built_meanwhile():
     np.testing.assert_allclose(world_map.points[2], [0.0, 0.0, 1.01], atol=1e-12)
 
 
+
+
+def test_the_places_followed_after_a_loop_are_held_as_the_reference():
+    """Points of the places kept, found again after a loop closed (``Map.place_points``),
+    enter bundle adjustment as fixed world points, as a loaded map's do: they are not
+    adjusted, and the keyframes seeing them are held to them. The pose alone does not take
+    them as a loaded map's reference (``is_reference(loaded_only=True)``)."""
+    world_map, source, poses, ids = perturbed_window()
+    places = {int(t) for t in ids[::2]}
+    world_map.place_points.update(places)
+    problem = build_problem(world_map, BundleOptions(window_keyframes=5))
+    assert problem is not None
+    assert places.isdisjoint(int(p) for p in problem.point_ids)
+    held = len(problem.tgt_world) - sum(len(kf.target_world) for kf in world_map.keyframes.values())
+    assert held == sum(int(t) in places for kf in world_map.keyframes.values() for t in kf.track_ids)
+    assert world_map.is_reference(ids).sum() == len(places)
+    assert not world_map.is_reference(ids, loaded_only=True).any()
+    world_map.remove_point(int(ids[0]))
+    assert int(ids[0]) not in world_map.place_points

@@ -173,12 +173,14 @@ def test_agile_swings_with_blur_and_exposure_steps_keep_the_pose(tmp_path_factor
 
 def test_laps_of_the_room_close_the_loop_on_the_first(tmp_path_factory):
     """Three laps round the cube (the ``laps`` scenario, 150 s at half resolution, ~50 m,
-    the cube out of view for ~140 s): each time the view comes round to the places of the
-    first lap, several matches against their keyframes agree on how far the map has drifted,
-    and the map being tracked is moved onto them. Measured with noise seed 0: 2 closures,
-    each bringing the pose nearer the truth (21.0 -> 6.1 and 13.8 -> 8.3 mm); RMS
-    15.0 mm, the laps 10.4 / 16.0 / 18.4 mm; without loop closure 20.5 mm, the laps 10.4 /
-    21.4 / 26.3 mm (seed 1: 22.4 -> 15.8 mm; at 1280x1024, docs/benchmarks.md "laps")."""
+    the cube out of view for ~140 s): when the view comes round to the places of the first
+    lap, several matches against their keyframes agree on how far the map has drifted, the
+    map being tracked is moved onto them, and from then on their points are followed as the
+    reference. Measured with noise seed 0: 2 closures, the first bringing the pose nearer
+    the truth, the second (on the third lap) 1-2 mm further; RMS 9.4 mm, the laps 10.3 /
+    10.8 / 7.7 mm; without following the places 15.0 mm, the laps 10.4 / 16.0 / 18.4 mm;
+    without loop closure 20.5 mm, the laps 10.4 / 21.4 / 26.3 mm (at 1280x1024:
+    docs/benchmarks.md "laps")."""
     out = tmp_path_factory.mktemp("laps") / "laps"
     write_synthetic_sequence(out, "laps", seconds=150.0, seed=0, calibration=half_resolution())
     truth = read_tum(out / "groundtruth.tum")
@@ -198,7 +200,9 @@ def test_laps_of_the_room_close_the_loop_on_the_first(tmp_path_factory):
     track_sequence(out, half_resolution(), options=options, on_frame=closures)
     closed = closed[0]
     errors, seconds = np.array(errors), np.arange(len(errors)) / 10.0
-    last_lap = errors[(seconds >= 95.7) & (seconds < 142.0)]  # the laps end at 49.3, 95.7 and 142 s
-    assert closed >= 1 and all(nearer), nearer
-    assert np.sqrt(np.mean(errors**2)) < 0.018 and np.sqrt(np.mean(last_lap**2)) < 0.022, \
-        (np.sqrt(np.mean(errors**2)), np.sqrt(np.mean(last_lap**2)))
+    laps = [float(np.sqrt(np.mean(errors[(seconds >= a) & (seconds < b)] ** 2)))
+            for a, b in ((3.0, 49.3), (49.3, 95.7), (95.7, 142.0))]  # the laps' bounds at 150 s
+    run = float(np.sqrt(np.mean(errors**2)))
+    assert closed >= 1 and nearer[0], nearer
+    # the trusted-pose issue's goals: the last lap no worse than the first, the run at most 1.5x
+    assert laps[2] <= laps[0] and run <= 1.5 * laps[0] and run < 0.013, (run, laps)

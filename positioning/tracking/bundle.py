@@ -117,10 +117,13 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     point_ids_set: set[int] = set()
     for kf in window:
         point_ids_set.update(int(t) for t in kf.track_ids if int(t) in world_map.points)
-    # a loaded map's points are the reference, as the target's corners are: fixed world
-    # points (held only by one fixed keyframe's ray each, free ones slid along them and
-    # the keyframes after a boot relocalisation with them: 80 mm off in three frames)
-    reference = {p for p in point_ids_set if world_map.point_birth.get(p) in world_map.fixed}
+    # a loaded map's points, and the places kept followed after a loop closed, are the
+    # reference, as the target's corners are: fixed world points (held only by one fixed
+    # keyframe's ray each, free ones slid along them and the keyframes after a boot
+    # relocalisation with them: 80 mm off in three frames; on the laps, the window's scale
+    # with them, 0.2 % a lap)
+    reference = {p for p in point_ids_set if world_map.point_birth.get(p) in world_map.fixed} | \
+        (point_ids_set & world_map.place_points)
     point_ids_set -= reference
     if not point_ids_set:
         return None

@@ -1,6 +1,7 @@
 """Loop closure (a mixin of ``tracker.Tracker``, whose state it shares): when the view comes
 back to a place mapped long ago, matches against its keyframes say how far the map has
-drifted since, and the map being tracked is moved onto it (docs/tracker.md, "Loop closure").
+drifted since, and the map being tracked is moved onto it; from then on the places kept are
+followed where they are in view, held as the reference (docs/tracker.md, "Loop closure").
 Off by default (``TrackerOptions.loop.enabled``).
 """
 
@@ -31,11 +32,19 @@ class LoopClosure:
         points tracked now (a place left and seen again, not the place being tracked), not
         moved by an earlier loop closure (``Keyframe.loop_moved``: its pose is then that
         correction's guess), and whose drift is at most ``loop.max_drift_share`` of this
-        frame's. None unless ``frame``'s pose came from the map and made a keyframe."""
+        frame's. None unless ``frame``'s pose came from the map and made a keyframe, nor
+        while it tracks ``reloc.min_reference_points`` points of the places kept (held by
+        them, the map has not drifted from them), nor within ``loop.min_age_s`` of a
+        relocalisation (the pose was put on the map's keyframes then: it has drifted no more
+        since than a keyframe that young, which is no candidate, would say)."""
         o = self.options
         pose = frame.pose
         if pose is None or frame.keyframe is None or self.holding or frame.target is not None:
             return []
+        if self.map.is_reference(frame.tracks.ids).sum() >= o.reloc.min_reference_points:
+            return []  # held by the places kept already (loop_places): nothing drifted to correct
+        if (frame.stamp_ns - self.relocalised_ns) / 1e9 < o.loop.min_age_s:
+            return []  # found in the map's keyframes since: what a loop could correct, it has
         keyframes = list(self.map.keyframes.values())[: -self.options.bundle.window_keyframes]
         live = frame.tracks.ids
         axis = pose.rotation[:, 2]
@@ -57,6 +66,22 @@ class LoopClosure:
             near.append((kf.kf_id, kf))
         near.sort(key=lambda pair: pair[0])  # the oldest first
         return [kf for _, kf in near[: o.loop.keyframes]]
+
+    def loop_places(self, frame: TrackedFrame) -> list[Keyframe]:
+        """The places kept whose points this keyframe looks for again, to follow as tracks
+        (``Relocaliser.refind``): once a loop has closed or agreed, every keyframe outside
+        bundle adjustment's window made ``loop.min_age_s`` or more before ``frame`` (anchored
+        ones too; not a loaded map's, which has its own search). Following them, the map
+        tracked is the one first made where it is in view, and its own drift stops growing
+        there, as when a saved map is loaded; before a loop has closed the two disagree by
+        the drift, and following both would split it between them. [] unless ``frame`` made
+        a keyframe."""
+        if not (self.options.loop.enabled and self.places_agree) or frame.keyframe is None or frame.pose is None:
+            return []
+        o = self.options
+        keyframes = list(self.map.keyframes.values())[: -o.bundle.window_keyframes]
+        return [kf for kf in keyframes if kf.kf_id not in self.map.fixed and len(kf.descriptor_ids)
+                and (frame.stamp_ns - kf.stamp_ns) / 1e9 >= o.loop.min_age_s]
 
     def close_loop(self, frame: TrackedFrame, pose: Transform, covariance: np.ndarray, reference: Keyframe
                    ) -> tuple[str, TrackedFrame]:
@@ -102,6 +127,7 @@ class LoopClosure:
         # seen from another viewpoint are not in a match's covariance)
         offsets = np.array([e[1] for e in evidence])
         scatter = np.cov(offsets.T) / len(evidence)
+        self.places_agree = True
         if mean @ np.linalg.solve(np.linalg.inv(information) + scatter, mean) <= CHI2_3DOF_99:
             return "agrees", frame
         rotation = Transform.from_rvec_tvec(np.median([e[3] for e in evidence], axis=0), np.zeros(3)).rotation

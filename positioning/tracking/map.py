@@ -85,6 +85,9 @@ class Map:
         # a loaded point's last chances to be seen (True: it was), and how many were retired
         self.point_history: dict[int, collections.deque] = {}
         self.point_chance_at: dict[int, np.ndarray] = {}  # where each one's last chance was taken
+        # points of places kept, found again after a loop closed (Tracker.loop_places): the
+        # reference from then on, as a loaded map's points are (moved only by corrections)
+        self.place_points: set[int] = set()
         self.points_retired = 0
 
     def __len__(self) -> int:
@@ -139,12 +142,16 @@ class Map:
         self.points.pop(int(track_id), None)
         self.point_birth.pop(int(track_id), None)
         self.point_serial.pop(int(track_id), None)
+        self.place_points.discard(int(track_id))
 
-    def is_reference(self, track_ids: np.ndarray) -> np.ndarray:
-        """Which of ``track_ids`` are a loaded map's points (born in its ``fixed`` keyframes)."""
-        if not self.fixed:
+    def is_reference(self, track_ids: np.ndarray, loaded_only: bool = False) -> np.ndarray:
+        """Which of ``track_ids`` are the reference: a loaded map's points (born in its
+        ``fixed`` keyframes) and, unless ``loaded_only``, the ``place_points``."""
+        places = set() if loaded_only else self.place_points
+        if not self.fixed and not places:
             return np.zeros(len(track_ids), bool)
-        return np.fromiter((self.point_birth.get(int(t)) in self.fixed for t in track_ids), bool, len(track_ids))
+        return np.fromiter((self.point_birth.get(int(t)) in self.fixed or int(t) in places
+                            for t in track_ids), bool, len(track_ids))
 
     def observers(self, track_id: int) -> list[Keyframe]:
         return [kf for kf in self.keyframes.values() if kf.observation(track_id) is not None]

@@ -94,7 +94,10 @@ def pose_from_map(world_map: Map, tracks: Tracks, xn: np.ndarray, prediction: Tr
     ``max_motion_*`` from ``prediction``. Returns (pose or None, inliers, outlier
     ids, RMS px, 6x6 covariance from the inliers' reprojection errors)."""
     has = world_map.mapped(tracks.ids)
-    reference = has & world_map.is_reference(tracks.ids)  # a loaded map's: they alone when enough
+    # a loaded map's points: they alone when enough. Not the places kept (Map.place_points):
+    # made from other viewpoints, they fit the tracks to ~1 px, and a pose on them alone
+    # jumps by several millimetres as they come and go (bundle adjustment holds them fixed)
+    reference = has & world_map.is_reference(tracks.ids, loaded_only=True)
     has = reference if reference.sum() >= o.reloc.min_reference_points else has
     ids = tracks.ids[has]
     if len(ids) < o.pnp.min_inliers:

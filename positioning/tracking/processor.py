@@ -253,6 +253,14 @@ class TrackingProcessor:
                 self.tracker.add_tracks(frame, Tracks(again.ids, again.pixels))
                 self.tracker.map.retire(again.visible, again.found, result.estimate.T_world_camera.translation,
                                         self.options.tracker)
+            places = self.tracker.loop_places(frame) if self.options.tracker.refind.enabled and \
+                result.estimate is not None else []
+            if places:  # a loop closed: the places kept in view followed again, as a loaded map's
+                again = self.relocaliser.refind(image, self.tracker.map, result.estimate.T_world_camera,
+                                                self.front_end.ids, places)
+                self.front_end.adopt(again.ids, again.pixels)
+                self.tracker.add_tracks(frame, Tracks(again.ids, again.pixels))
+                self.tracker.map.place_points.update(int(t) for t in again.ids)
             tracks = self.front_end.tracks
             self.relocaliser.describe(image, self.tracker.map.last_keyframe, self.tracker.map, tracks.ids,
                                       tracks.pixels)

@@ -12,6 +12,7 @@ matching a thousand features against a few thousand descriptors takes millisecon
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -81,10 +82,12 @@ class Relocaliser:
             at = np.array([k.pt for k in keypoints], dtype=np.float32)
             keyframe.patches = self._aligner.patches(image, at)  # uint8, as the image
 
-    def refind(self, image: np.ndarray, world_map: Map, pose: Transform, tracked: np.ndarray) -> Refound:
-        """A loaded map's points (the reference, ``world_map.fixed``) found again in
-        ``image`` near where ``pose`` projects them, to follow as tracks; and which of them
-        should have been seen here, and were (for ``Map.retire``).
+    def refind(self, image: np.ndarray, world_map: Map, pose: Transform, tracked: np.ndarray,
+               places: list[Keyframe] | None = None) -> Refound:
+        """A loaded map's points (the reference, ``world_map.fixed``), or those described
+        by the keyframes ``places`` (a place kept, seen again after a loop closed), found
+        again in ``image`` near where ``pose`` projects them, to follow as tracks; and which
+        of them should have been seen here, and were (for ``Map.retire``).
 
         Without it a robot booted on a saved map tracks the map's points only while the
         relocalisation's tracks live, then its own, triangulated from a pose a few
@@ -100,7 +103,7 @@ class Relocaliser:
         ratio) and claimed by no other point. ~15 ms a keyframe at 1280x1024 (2000
         corners described)."""
         o = self.options
-        reference = self._reference(world_map)
+        reference = self._reference(world_map) if places is None else _described(world_map, places)
         alive = world_map.mapped(reference[0])  # not retired
         ids, points, centres, descriptors = (a[alive] for a in reference)
         none = Refound(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0, np.int64))
@@ -164,23 +167,13 @@ class Relocaliser:
         return refined, aligned | ~have
 
     def _reference(self, world_map: Map) -> tuple[np.ndarray, ...]:
-        """The loaded map's described points: ids, positions, the describing keyframe's
-        camera centre, descriptors. Kept per map: a
-        loaded map's points never move."""
+        """The loaded map's described points (``_described``), kept per map: a loaded map's
+        points never move."""
         if self._reference_of is not world_map:
-            known: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-            for kf in world_map.keyframes.values():  # newest last, so the newest descriptor wins
-                if kf.kf_id not in world_map.fixed:
-                    continue
-                for point_id, descriptor in zip(kf.descriptor_ids, kf.descriptors, strict=True):
-                    if world_map.point_birth.get(int(point_id)) in world_map.fixed:
-                        known[int(point_id)] = (kf.T_world_camera.translation, descriptor)
-            ids = np.array(list(known), dtype=np.int64)
+            fixed = [kf for kf in world_map.keyframes.values() if kf.kf_id in world_map.fixed]
+            self._reference_arrays = _described(world_map, fixed, lambda point_id: world_map.point_birth.get(point_id)
+                                                in world_map.fixed)
             self._reference_of = world_map
-            self._reference_arrays = (
-                ids, np.array([world_map.points[int(i)] for i in ids]).reshape(-1, 3),
-                np.array([c for c, _ in known.values()]).reshape(-1, 3),
-                np.array([d for _, d in known.values()], dtype=np.uint8).reshape(-1, 32))
         return self._reference_arrays
 
     def _frame_features(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -275,3 +268,19 @@ class Relocaliser:
         if fit is None or np.sqrt(np.max(np.linalg.eigvalsh(fit.covariance[:3, :3]))) > o.reloc.max_position_sigma_m:
             return None
         return Relocalisation(pose, ids[good], pixels[good], len(best), fit.covariance)
+
+
+def _described(world_map: Map, keyframes: list[Keyframe], keep: Callable[[int], bool] | None = None
+               ) -> tuple[np.ndarray, ...]:
+    """The points ``keyframes`` described (``keep(point_id)`` true, if given) that are still
+    in the map: ids, positions, the describing keyframe's camera centre, descriptors (the
+    newest keyframe's of a point seen by several)."""
+    known: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for kf in keyframes:  # newest last, so the newest descriptor wins
+        for point_id, descriptor in zip(kf.descriptor_ids, kf.descriptors, strict=True):
+            if int(point_id) in world_map.points and (keep is None or keep(int(point_id))):
+                known[int(point_id)] = (kf.T_world_camera.translation, descriptor)
+    ids = np.array(list(known), dtype=np.int64)
+    return (ids, np.array([world_map.points[int(i)] for i in ids]).reshape(-1, 3),
+            np.array([c for c, _ in known.values()]).reshape(-1, 3),
+            np.array([d for _, d in known.values()], dtype=np.uint8).reshape(-1, 32))

@@ -116,6 +116,8 @@ class Tracker(MapBeginning, LoopClosure):
         self.loops_closed, self.loops_refused = 0, 0  # loop closures applied and refused (close_loop)
         self.last_closure: tuple[int, Transform, Transform] | None = None  # its stamp, the pose before and after
         self._loop_evidence: list[tuple] = []  # close_loop's matches not yet applied
+        self.places_agree = False  # a loop closed or agreed: the places kept are followed (loop_places)
+        self.relocalised_ns = 0  # when a frame was last relocalised in the map: no loop closes just after
         self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
         # the rays that hold the orientation when few map points are in view; the drift since the target
         self._hold = RayHold(self.options, self.fx)
@@ -295,6 +297,7 @@ class Tracker(MapBeginning, LoopClosure):
         Returns the pose's covariance (the match's, ``covariance``, plus the drift) and
         the frame."""
         self._drift.relocalised(covariance)
+        self.relocalised_ns = stamp_ns
         self._end_beginning_again()
         match, covariance = covariance, self._drift.covariance(self.motion.last, pose, covariance)
         self._hold.end()
