@@ -120,8 +120,7 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     # a loaded map's points, and the places kept followed after a loop closed, are the
     # reference, as the target's corners are: fixed world points (held only by one fixed
     # keyframe's ray each, free ones slid along them and the keyframes after a boot
-    # relocalisation with them: 80 mm off in three frames; on the laps, the window's scale
-    # with them, 0.2 % a lap)
+    # relocalisation with them; the window's scale with them)
     reference = {p for p in point_ids_set if world_map.point_birth.get(p) in world_map.fixed} | \
         (point_ids_set & world_map.place_points)
     point_ids_set -= reference

@@ -76,7 +76,7 @@ class LoopClosure:
         there, as when a saved map is loaded; before a loop has closed the two disagree by
         the drift, and following both would split it between them. [] unless ``frame`` made
         a keyframe."""
-        if not (self.options.loop.enabled and self.places_agree) or frame.keyframe is None or frame.pose is None:
+        if not self.places_agree or frame.keyframe is None or frame.pose is None:
             return []
         o = self.options
         keyframes = list(self.map.keyframes.values())[: -o.bundle.window_keyframes]

@@ -245,25 +245,28 @@ class TrackingProcessor:
         new = self.front_end.detect(image, self.target_outline(pose))
         frame = self.tracker.add_tracks(frame, new)
         if keyframe and self.tracker.map.last_keyframe is not None:
-            if self.tracker.map.fixed and result.estimate is not None and self.options.tracker.refind.enabled:
+            refind = result.estimate is not None and self.options.tracker.refind.enabled
+            if refind and self.tracker.map.fixed:
                 # on a loaded map: its points found again, and those not found where they should be retired
                 again = self.relocaliser.refind(image, self.tracker.map, result.estimate.T_world_camera,
                                                 self.front_end.ids)
-                self.front_end.adopt(again.ids, again.pixels)
-                self.tracker.add_tracks(frame, Tracks(again.ids, again.pixels))
+                self._follow(frame, again.ids, again.pixels)
                 self.tracker.map.retire(again.visible, again.found, result.estimate.T_world_camera.translation,
                                         self.options.tracker)
-            places = self.tracker.loop_places(frame) if self.options.tracker.refind.enabled and \
-                result.estimate is not None else []
+            places = self.tracker.loop_places(frame) if refind else []
             if places:  # a loop closed: the places kept in view followed again, as a loaded map's
                 again = self.relocaliser.refind(image, self.tracker.map, result.estimate.T_world_camera,
                                                 self.front_end.ids, places)
-                self.front_end.adopt(again.ids, again.pixels)
-                self.tracker.add_tracks(frame, Tracks(again.ids, again.pixels))
+                self._follow(frame, again.ids, again.pixels)
                 self.tracker.map.place_points.update(int(t) for t in again.ids)
             tracks = self.front_end.tracks
             self.relocaliser.describe(image, self.tracker.map.last_keyframe, self.tracker.map, tracks.ids,
                                       tracks.pixels)
+
+    def _follow(self, frame: TrackedFrame, ids: np.ndarray, pixels: np.ndarray) -> TrackedFrame:
+        """Map points found again at ``pixels`` followed from here as tracks under their ids."""
+        self.front_end.adopt(ids, pixels)
+        return self.tracker.add_tracks(frame, Tracks(ids, pixels))
 
     def _relocalise(self, image: np.ndarray, stamp_ns: int, lost: FrameResult, frame: TrackedFrame
                     ) -> tuple[FrameResult, TrackedFrame]:
@@ -295,8 +298,7 @@ class TrackingProcessor:
         outcome, frame = self.tracker.close_loop(frame, found.T_world_camera, found.covariance, reference)
         if outcome in ("refused", "pending"):
             return tracked, frame
-        self.front_end.adopt(found.point_ids, found.pixels)
-        frame = self.tracker.add_tracks(frame, Tracks(found.point_ids, found.pixels))
+        frame = self._follow(frame, found.point_ids, found.pixels)
         if outcome == "agrees":
             return tracked, frame
         before, after = tracked.estimate, frame.pose
