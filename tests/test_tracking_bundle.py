@@ -230,13 +230,20 @@ def test_the_window_keeps_the_newest_anchored_keyframes_that_share_its_points():
     plain = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=0))
     assert sorted(plain.kf_ids[plain.free].tolist()) == [4, 5, 6, 7, 8, 9] and len(plain.tgt_kf) == 0
     # only the newest eight are the map's working set (the rest places kept for loop
-    # closure): the newest anchored keyframe in it joins, the older ones hold nothing
+    # closure, Map.places): the newest anchored keyframe in it joins, the next is a fixed
+    # constraint, the places take no part
     recent = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=1), recent=8)
     free = dict(zip(recent.kf_ids.tolist(), recent.free.tolist(), strict=True))
-    assert free == {0: False, 1: False, 2: False, 3: True, 4: True, 5: True, 6: True, 7: True, 8: True, 9: True}
+    assert free == {2: False, 3: True, 4: True, 5: True, 6: True, 7: True, 8: True, 9: True}
     assert len(recent.tgt_kf) == 4
+    world_map.places_agree = True  # once a loop has closed they are fixed constraints again
+    closed = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=1), recent=8)
+    assert closed.kf_ids[~closed.free].tolist() == [0, 1, 2] and len(closed.tgt_kf) == 4
+    world_map.places_agree = False
     places = build_problem(world_map, BundleOptions(window_keyframes=6, anchored_keyframes=3), recent=6)
-    assert sorted(places.kf_ids[places.free].tolist()) == [4, 5, 6, 7, 8, 9] and len(places.tgt_kf) == 0
+    # nothing holds this window (the anchored keyframes are all places): its two oldest hold the gauge
+    assert places.kf_ids.tolist() == [4, 5, 6, 7, 8, 9] and len(places.tgt_kf) == 0
+    assert places.kf_ids[places.free].tolist() == [6, 7, 8, 9]
 
 
 def test_a_late_solution_carries_the_keyframes_and_points_built_meanwhile():

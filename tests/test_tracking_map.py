@@ -51,3 +51,25 @@ def test_map_triangulates_only_across_baselines_that_outweigh_the_poses_own_erro
             assert len(world.points) == len(points), sigmas
             assert set(world.point_birth.values()) == {frames[expected_birth].kf_id}, sigmas
             assert np.allclose(np.array([world.points[int(t)] for t in ids]), points, atol=1e-6)
+
+
+
+def test_the_places_kept_for_loop_closure_take_no_part_in_triangulation():
+    """Four keyframes on a line, all seeing the same points: against all of them the points
+    come from the oldest; when only the newest two before the last are the tracker's (the
+    oldest a place kept for loop closure, Map.places) from the second, until a loop has
+    closed or agreed."""
+    points = np.array([[0.1 * j, 0.05 * j, 1.0 + 0.02 * j] for j in range(-5, 6)])
+    ids = np.arange(len(points), dtype=np.int64)
+    for recent, agree, expected_birth in ((None, False, 0), (3, False, 0), (2, False, 1), (2, True, 0)):
+        world = Map()
+        world.places_agree = agree
+        frames = [world.add_keyframe(i, Transform(np.eye(3), np.array([x, 0.0, 0.0])), ids,
+                                     (points - [x, 0, 0])[:, :2] / (points - [x, 0, 0])[:, 2:])
+                  for i, x in enumerate((-0.1, -0.05, 0.0, 0.1))]
+        if recent is not None:
+            assert world.places(recent + 1, idle=True) == ({0} if (recent, agree) == (2, False) else set())
+        world.triangulate(frames[3], CAL.fx, min_parallax_deg=0.5, max_reproj_px=1.0, min_baseline_sigmas=1.0,
+                          recent=recent)
+        assert len(world.points) == len(points), recent
+        assert set(world.point_birth.values()) == {frames[expected_birth].kf_id}, recent

@@ -104,9 +104,9 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     ``anchored_keyframes`` older anchored keyframes seeing those points (also adjusted, held
     by the target's corners) among the newest ``recent`` keyframes the tracker made (None:
     among all; a loaded map's keyframes always count), and every other keyframe seeing those
-    points (held fixed). Keyframes kept beyond ``recent`` (places kept for loop closure) hold
-    no window by the target: their few long-lived points would tie it to the target long
-    after it left. A window neither the target nor a loaded map holds is held by the
+    points (held fixed). Keyframes kept beyond ``recent`` (places kept for loop closure,
+    ``Map.places``) hold no window by the target (their few long-lived points would tie it
+    to the target long after it left), and none at all until a loop has closed. A window neither the target nor a loaded map holds is held by the
     ``floor`` when there is one (floor.py): its points near the floor to the floor's height,
     its keyframes to the camera's, and the older keyframes sharing its points adjusted with
     it in height. None when there is nothing to adjust."""
@@ -127,8 +127,7 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     if not point_ids_set:
         return None
     older = keyframes[: -options.window_keyframes]
-    built = [kf.kf_id for kf in keyframes if kf.kf_id not in world_map.fixed]
-    places = set(built[: max(len(built) - recent, 0)]) if recent is not None else set()
+    places = world_map.places(recent) if recent is not None else set()
     extra = [kf for kf in older if kf.anchored and kf.kf_id not in places
              and any(int(t) in point_ids_set for t in kf.track_ids)]
     extra = extra[len(extra) - options.anchored_keyframes:] if options.anchored_keyframes else []
@@ -137,8 +136,9 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     point_ids = np.array(sorted(point_ids_set), dtype=np.int64)
     point_index = {int(p): i for i, p in enumerate(point_ids)}
     # older keyframes that see the window's points join as fixed constraints
+    idle = world_map.places(recent, idle=True) if recent is not None else set()
     fixed_outside = [
-        kf for kf in older if kf.kf_id not in window_ids
+        kf for kf in older if kf.kf_id not in window_ids and kf.kf_id not in idle
         if any(int(t) in point_index for t in kf.track_ids)
     ][-options.window_keyframes:]
     used = fixed_outside + window

@@ -76,7 +76,7 @@ class LoopClosure:
         there, as when a saved map is loaded; before a loop has closed the two disagree by
         the drift, and following both would split it between them. [] unless ``frame`` made
         a keyframe."""
-        if not self.places_agree or frame.keyframe is None or frame.pose is None:
+        if not self.map.places_agree or frame.keyframe is None or frame.pose is None:
             return []
         o = self.options
         keyframes = list(self.map.keyframes.values())[: -o.bundle.window_keyframes]
@@ -127,7 +127,7 @@ class LoopClosure:
         # seen from another viewpoint are not in a match's covariance)
         offsets = np.array([e[1] for e in evidence])
         scatter = np.cov(offsets.T) / len(evidence)
-        self.places_agree = True
+        self.map.places_agree = True
         if mean @ np.linalg.solve(np.linalg.inv(information) + scatter, mean) <= CHI2_3DOF_99:
             return "agrees", frame
         rotation = Transform.from_rvec_tvec(np.median([e[3] for e in evidence], axis=0), np.zeros(3)).rotation

@@ -88,6 +88,9 @@ class Map:
         # points of places kept, found again after a loop closed (Tracker.loop_places): the
         # reference from then on, as a loaded map's points are (moved only by corrections)
         self.place_points: set[int] = set()
+        # a loop closed or agreed (Tracker.close_loop): the places kept take part in tracking
+        # and are followed (Tracker.loop_places)
+        self.places_agree = False
         self.points_retired = 0
 
     def __len__(self) -> int:
@@ -156,13 +159,29 @@ class Map:
     def observers(self, track_id: int) -> list[Keyframe]:
         return [kf for kf in self.keyframes.values() if kf.observation(track_id) is not None]
 
+    def places(self, recent: int, idle: bool = False) -> set[int]:
+        """The keyframes the tracker made beyond its newest ``recent`` (a loaded map's do not
+        count): places kept for a loop to close on (``Map.thin``). ``idle``: only while no
+        loop has closed or agreed (``places_agree``); until then they take no part in
+        tracking (no point is triangulated against them, none holds a bundle window), so that
+        with loop closure on, a run that closes no loop is the run without it."""
+        if idle and self.places_agree:
+            return set()
+        built = [k for k in self.keyframes if k not in self.fixed]
+        return set(built[: max(len(built) - recent, 0)])
+
     def triangulate(self, kf: Keyframe, fx: float, min_parallax_deg: float, max_reproj_px: float,
-                    min_baseline_sigmas: float) -> None:
+                    min_baseline_sigmas: float, recent: int | None = None) -> None:
         """New points for the keyframe's tracks that have none, each against the oldest
-        keyframe that saw it (the longest baseline the track offers) whose baseline to this
-        one is ``min_baseline_sigmas`` times the two poses' own standard deviations (below
-        it the poses' errors, not the parallax, would set the depths and so the map's
-        scale), where the two rays meet at ``min_parallax_deg`` or more."""
+        keyframe that saw it (the longest baseline the track offers, of the newest ``recent``
+        before ``kf``: idle places kept beyond them take no part; None: of all) whose
+        baseline to this one is ``min_baseline_sigmas`` times the two poses' own standard
+        deviations (below it the poses' errors, not the parallax, would set the depths and
+        so the map's scale), where the two rays meet at ``min_parallax_deg`` or more. A
+        track that does not reproject on that pair is not tried on a shorter baseline,
+        where an inconsistent track passes (docs/tracker.md, "Tracking, keyframes and
+        points")."""
+        places = self.places(recent + 1, idle=True) if recent is not None else set()
         pending: dict[int, list[int]] = {}
         for i, t in enumerate(kf.track_ids):
             if int(t) in self.points:
@@ -170,7 +189,7 @@ class Map:
             for other in self.keyframes.values():
                 if other.kf_id == kf.kf_id:
                     break
-                if other.observation(int(t)) is None:
+                if other.kf_id in places or other.observation(int(t)) is None:
                     continue
                 baseline = np.linalg.norm(other.T_world_camera.translation - kf.T_world_camera.translation)
                 if baseline >= min_baseline_sigmas * np.hypot(other.position_sigma_m, kf.position_sigma_m):

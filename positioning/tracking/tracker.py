@@ -116,7 +116,6 @@ class Tracker(MapBeginning, LoopClosure):
         self.loops_closed, self.loops_refused = 0, 0  # loop closures applied and refused (close_loop)
         self.last_closure: tuple[int, Transform, Transform] | None = None  # its stamp, the pose before and after
         self._loop_evidence: list[tuple] = []  # close_loop's matches not yet applied
-        self.places_agree = False  # a loop closed or agreed: the places kept are followed (loop_places)
         self.relocalised_ns = 0  # when a frame was last relocalised in the map: no loop closes just after
         self._bundle_due = False  # a keyframe arrived while bundle adjustment was running
         # the rays that hold the orientation when few map points are in view; the drift since the target
@@ -409,7 +408,8 @@ class Tracker(MapBeginning, LoopClosure):
         self._frames_since_keyframe = 0
         self.map.triangulate(kf, self.fx, o.triangulation.starving_parallax_deg
                              if inliers < o.triangulation.starving_points else o.triangulation.min_parallax_deg,
-                             o.triangulation.max_reproj_px, o.triangulation.min_baseline_sigmas)
+                             o.triangulation.max_reproj_px, o.triangulation.min_baseline_sigmas,
+                             o.keyframes.max_kept)
         self._kf_points_at_insert = int(self.map.mapped(kf.track_ids).sum())
         live = {int(t) for t in tracks.ids}
         if o.loop.enabled:  # places left behind stay, a few, for a loop to close on
