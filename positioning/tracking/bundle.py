@@ -106,10 +106,11 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     among all; a loaded map's keyframes always count), and every other keyframe seeing those
     points (held fixed). Keyframes kept beyond ``recent`` (places kept for loop closure,
     ``Map.places``) hold no window by the target (their few long-lived points would tie it
-    to the target long after it left), and none at all until a loop has closed. A window neither the target nor a loaded map holds is held by the
-    ``floor`` when there is one (floor.py): its points near the floor to the floor's height,
-    its keyframes to the camera's, and the older keyframes sharing its points adjusted with
-    it in height. None when there is nothing to adjust."""
+    to the target long after it left), and none at all until a loop has closed. A window
+    neither the target nor a loaded map holds is held by the ``floor`` when there is one
+    (floor.py): its points near the floor to the floor's height, its keyframes to the
+    camera's, and the older keyframes sharing its points adjusted with it in height. None
+    when there is nothing to adjust."""
     keyframes = list(world_map.keyframes.values())
     window = keyframes[-options.window_keyframes:]
     if len(window) < 2:
@@ -136,7 +137,7 @@ def build_problem(world_map: Map, options: BundleOptions, recent: int | None = N
     point_ids = np.array(sorted(point_ids_set), dtype=np.int64)
     point_index = {int(p): i for i, p in enumerate(point_ids)}
     # older keyframes that see the window's points join as fixed constraints
-    idle = world_map.places(recent, idle=True) if recent is not None else set()
+    idle = set() if world_map.places_agree else places
     fixed_outside = [
         kf for kf in older if kf.kf_id not in window_ids and kf.kf_id not in idle
         if any(int(t) in point_index for t in kf.track_ids)

@@ -178,9 +178,9 @@ class Map:
         baseline to this one is ``min_baseline_sigmas`` times the two poses' own standard
         deviations (below it the poses' errors, not the parallax, would set the depths and
         so the map's scale), where the two rays meet at ``min_parallax_deg`` or more. A
-        track that does not reproject on that pair is not tried on a shorter baseline,
-        where an inconsistent track passes (docs/tracker.md, "Tracking, keyframes and
-        points")."""
+        track that does not reproject on that pair waits: it is not tried on a shorter
+        baseline (tried so, the family's runs went far off: docs/tracker.md, "Tracking,
+        keyframes and points")."""
         places = self.places(recent + 1, idle=True) if recent is not None else set()
         pending: dict[int, list[int]] = {}
         for i, t in enumerate(kf.track_ids):
