@@ -32,7 +32,22 @@ def machine_line() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    return f"{cpu}, {os.cpu_count()} cores, NumPy SIMD {_simd()}, Python {platform.python_version()}"
+
+
+def _simd() -> str:
+    """The widest SIMD extension NumPy dispatches its kernels to on this CPU: the same code
+    rounds differently on another, and the tracker's runs on the family follow the
+    rounding (docs/family.md, "Draws")."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as features
+    except ImportError:
+        return "unknown"
+    for name in ("AVX512_SPR", "AVX512_ICL", "AVX512_CNL", "AVX512_CLX", "AVX512_SKX", "AVX512F", "AVX2", "AVX",
+                 "SSE42", "ASIMD"):
+        if features.get(name):
+            return name
+    return "baseline"
 
 
 def without_gtsam(bench: str) -> bool:
