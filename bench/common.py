@@ -36,18 +36,14 @@ def machine_line() -> str:
 
 
 def _simd() -> str:
-    """The widest SIMD extension NumPy dispatches its kernels to on this CPU: the same code
-    rounds differently on another, and the tracker's runs on the family follow the
-    rounding (docs/family.md, "Draws")."""
-    try:
-        from numpy._core._multiarray_umath import __cpu_features__ as features
-    except ImportError:
-        return "unknown"
-    for name in ("AVX512_SPR", "AVX512_ICL", "AVX512_CNL", "AVX512_CLX", "AVX512_SKX", "AVX512F", "AVX2", "AVX",
-                 "SSE42", "ASIMD"):
-        if features.get(name):
-            return name
-    return "baseline"
+    """The widest SIMD extension NumPy dispatches its kernels to on this CPU (NumPy's own
+    report): the same code rounds differently on another, and the tracker's runs on the
+    family follow the rounding (docs/family.md, "Draws")."""
+    import numpy as np
+
+    simd = np.show_config(mode="dicts").get("SIMD Extensions", {})
+    found = simd.get("found") or simd.get("baseline") or ["unknown"]
+    return found[-1]
 
 
 def without_gtsam(bench: str) -> bool:
