@@ -12,7 +12,12 @@ relocalisation could at best give back; the rest of the lost frames need the map
 RMS and max position error with no alignment, the error per metre
 travelled since the cube was last in view (median over the frames at least 1 m from it),
 the longest stretch without a pose (seconds), the share of poses inside their 3-sigma
-ellipsoid and those beyond 5 sigma, fps (the replay's own), and whether the seed meets the
+ellipsoid and those beyond 5 sigma, where the map's scale walks (``evaluation.scale_walk``
+on the poses not from the target, over 0.5 m stretches: the RMS step of the scale across a
+turn of 30 deg or more, the rate it walks at between stretches driven on (% per root metre),
+the largest single step, and the median share by which the estimate turns less than the
+camera in a turn),
+fps (the replay's own), and whether the seed meets the
 tracker issue's goals: coverage >= 99 %, RMS <= 5 mm + 1 % of the longest path driven with
 the cube out of view, no pose beyond 5 sigma. On a seed the generator flags unobservable
 the goal is the same coverage with the position held (its covariance growing), so the
@@ -24,7 +29,8 @@ work) or ``full`` (40 seeds at 1280x1024). ``CUBELOC_BENCH_FAMILY_SEEDS=1,2,3`` 
 ``CUBELOC_BENCH_BASELINE=DIR`` an existing checkout of the baseline instead of a worktree;
 ``CUBELOC_BENCH_FAMILY_BASELINE=0`` runs this tree alone; ``CUBELOC_BENCH_FAMILY_JOBS`` how many
 runs go at once (default: the cores); ``CUBELOC_BENCH_FAMILY_DRAWS`` how many draws a seed
-(default 3).
+(default 3); ``CUBELOC_BENCH_FAMILY_ODOMETRY=1`` replays each seed with the robot's wheel
+odometry (``fakes.family.wheel_odometry``: 1.5 % long, turns 1 % long, a heading drift).
 
 **Draws.** One replay of a seed is one draw of its outcome: the tracker's path hangs on
 thresholds that a drifting map crosses either way, and the same frames replayed from the
@@ -53,6 +59,9 @@ from bench.scenarios import _track, read_poses
 TITLE = "Tracker on the randomized family of scenes, robots and motions"
 BASELINE_COMMIT = "47a9a9c"
 SETS = {"half": tuple(range(12)), "full": tuple(range(40))}
+WITH_WHEELS = " with the robot's wheel odometry (`CUBELOC_BENCH_FAMILY_ODOMETRY=1`)"
+# the scale's walk over stretches this long: a room's drives between turns are 1-3 m
+WALK_STRETCH_M = 0.5
 
 
 def cached_case(root: Path, seed: int, resolution: str) -> Path:
@@ -75,11 +84,12 @@ def cached_case(root: Path, seed: int, resolution: str) -> Path:
     return out
 
 
-def seed_figures(sequence: Path, per_frame: list, first: int = 0) -> dict:
+def seed_figures(sequence: Path, per_frame: list, first: int = 0, sources: list | None = None) -> dict:
     """The per-seed figures of one run (see the module's docstring); a run replayed from
-    frame ``first`` is scored on the frames from there."""
+    frame ``first`` is scored on the frames from there. ``sources``: each frame's pose
+    source (``read_poses``); the scale's walk leaves out the target's poses."""
     from cubeloc.fakes.family import make_case
-    from cubeloc.positioning.evaluation import lost_where_seen_before, score_run
+    from cubeloc.positioning.evaluation import lost_where_seen_before, scale_walk, score_run
     from cubeloc.positioning.trajectory_io import read_tum
 
     truth = read_tum(sequence / "groundtruth.tum")[first:]
@@ -95,30 +105,53 @@ def seed_figures(sequence: Path, per_frame: list, first: int = 0) -> dict:
     away_m = float(since.max())
     bound_mm = 5.0 + 10.0 * away_m  # 5 mm + 1 % of the longest path away from the cube
     rms_mm = score.rmse_m * 1000
+    away = None if sources is None else np.array([s != "target" for s in sources[first:]])
+    walk = scale_walk(truth, [None if e is None else e[0] for e in per_frame], away, stretch_m=WALK_STRETCH_M)
     meets = score.coverage >= 0.99 and np.isfinite(rms_mm) and rms_mm <= bound_mm and score.beyond_5_sigma == 0
     return {"coverage": score.coverage, "rms_mm": rms_mm, "max_mm": score.max_m * 1000,
             "per_metre_mm": per_metre, "gap_s": score.longest_gap_frames / described["camera"]["fps"],
             "consistent": score.consistent, "beyond_5": score.beyond_5_sigma, "away_m": away_m,
             "bound_mm": bound_mm, "meets": bool(meets), "flagged": bool(described["unobservable"]),
-            "frames": score.frames,
+            "frames": score.frames, "turn_step_pct": walk.turn_step_percent, "drive_walk_pct": walk.drive_walk_percent,
+            "largest_step_pct": walk.largest_step_percent,
+            "under_turn_pct": float(np.median(walk.under_turn_percent)) if len(walk.under_turn_percent) else float("nan"),
             "lost_seen": float(lost_where_seen_before(truth, [e is not None for e in per_frame]).mean())}
 
 
-def run_tree(tree: Path, sequence: Path, work: Path, label: str, first: int = 0) -> dict:
-    """One ``cubeloc track`` of ``sequence`` from ``tree``, replayed from frame ``first``:
-    its figures; a run that died is scored as no pose at all, with ``crashed`` its last
-    words."""
+def wheels(sequence: Path, out: Path) -> tuple[str, ...]:
+    """``cubeloc track`` arguments that replay the robot's wheel odometry with ``sequence``
+    (``fakes.family.wheel_odometry``, written beside ``out``), the camera's mount exact, the
+    odometry as bridge and motion prior (``[odometry]``'s defaults)."""
+    from cubeloc.fakes.family import base_from_camera, make_case, wheel_odometry
+    from cubeloc.fakes.odometry import write_odometry
+
+    described = json.loads((sequence / "family.json").read_text())
+    case = make_case(described["seed"], described["resolution"])
+    odometry, config = out.with_name(f"{out.stem}-odometry.jsonl"), out.with_name(f"{out.stem}-odometry.toml")
+    write_odometry(odometry, wheel_odometry(case))
+    xyz, quaternion = base_from_camera(case)
+    config.write_text(f"[frames.base_from_camera]\nxyz = {xyz}\nquaternion = {quaternion}\n[odometry]\nenabled = true\n")
+    return "--odometry", str(odometry), "--config", str(config)
+
+
+def run_tree(tree: Path, sequence: Path, work: Path, label: str, first: int = 0, odometry: bool = False) -> dict:
+    """One ``cubeloc track`` of ``sequence`` from ``tree``, replayed from frame ``first``
+    (``odometry``: with the robot's wheels, ``wheels``): its figures; a run that died is
+    scored as no pose at all, with ``crashed`` its last words."""
     from cubeloc.drivers.sequence import read_sequence_index
 
     out = work / f"{sequence.name}-{label}-from-{first}.tum"
     extra = ("--no-plot",) + (("--first", str(first)) if first else ())  # (a baseline tree may lack --first)
+    extra += wheels(sequence, out) if odometry else ()
     try:
         figures = _track(tree, sequence, out, poses=True, extra=extra)
     except RuntimeError as exc:
         nothing = [None] * len(read_sequence_index(sequence))
         return {**seed_figures(sequence, nothing, first), "fps": float("nan"),
                 "crashed": str(exc).splitlines()[-1][-160:]}
-    return {**seed_figures(sequence, read_poses(sequence, out.with_suffix(".jsonl")), first), "fps": figures["fps"]}
+    sources: list = []
+    per_frame = read_poses(sequence, out.with_suffix(".jsonl"), sources)
+    return {**seed_figures(sequence, per_frame, first, sources), "fps": figures["fps"]}
 
 
 def distribution(values: list[float], higher_is_better: bool = False) -> str:
@@ -139,10 +172,10 @@ def replays_from(tree: Path) -> bool:
 
 
 def measure(seeds: list[int], which: str, root: Path, baseline: bool, jobs: int,
-            draws: int = 1) -> list[tuple[int, str, int, dict, dict]]:
+            draws: int = 1, odometry: bool = False) -> list[tuple[int, str, int, dict, dict]]:
     """(seed, tracker, first frame, figures, family.json) for each seed, each tree and each
-    draw (the replay from frame 0, 1, ... ``draws - 1``), ``jobs`` child processes at once;
-    renders what the cache lacks first."""
+    draw (the replay from frame 0, 1, ... ``draws - 1``), ``jobs`` child processes at once
+    (``odometry``: each with the robot's wheel odometry); renders what the cache lacks first."""
     from concurrent.futures import ThreadPoolExecutor
 
     sequences = {seed: cached_case(root, seed, which) for seed in seeds}
@@ -157,15 +190,16 @@ def measure(seeds: list[int], which: str, root: Path, baseline: bool, jobs: int,
             runs = [(seed, label, tree, first) for first in range(draws) for seed in seeds for label, tree in trees
                     if first == 0 or replays_from(tree)]
             with ThreadPoolExecutor(max(1, jobs)) as pool:
-                figures = list(pool.map(lambda r: run_tree(r[2], sequences[r[0]], work, r[1].replace(" ", "-"), r[3]),
+                figures = list(pool.map(lambda r: run_tree(r[2], sequences[r[0]], work, r[1].replace(" ", "-"), r[3],
+                                                                 odometry),
                                         runs))
     return [(seed, label, first, f, json.loads((sequences[seed] / "family.json").read_text()))
             for (seed, label, _, first), f in zip(runs, figures, strict=True)]
 
 
-def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: int) -> str:
+def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: int, odometry: bool = False) -> str:
     """The bench's section: the distributions over seeds (and draws), the spread of each
-    seed over its draws, then each run."""
+    seed over its draws, then each run (``odometry``: the runs had the robot's wheels)."""
     rows, by_tree, by_seed = [], {}, {}
     for seed, label, first, f, described in sorted(results, key=lambda r: (r[0], r[1] != "this tree", r[2])):
         by_tree.setdefault(label, []).append(f)
@@ -178,11 +212,15 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
                      f"{100 * f['coverage']:.1f} %", f"{100 * f['lost_seen']:.1f} %", f"{f['rms_mm']:.1f}",
                      f"{f['max_mm']:.0f}",
                      f"{f['per_metre_mm']:.1f}", f"{f['gap_s']:.1f}",
-                     f"{100 * f['consistent']:.1f} % ({f['beyond_5']})", f"{f['fps']:.1f}",
+                     f"{100 * f['consistent']:.1f} % ({f['beyond_5']})",
+                     f"{f['turn_step_pct']:.1f} / {f['drive_walk_pct']:.2f} / {f['largest_step_pct']:.1f}",
+                     f"{f['under_turn_pct']:+.2f}",
+                     f"{f['fps']:.1f}",
                      "crashed" if f.get("crashed") else "yes" if f["meets"] else "no"])
     table = markdown_table(["seed", "tracker", "from frame", "scene", "camera", "motion", "unobservable", "coverage",
                             "lost where seen before", "RMS mm",
-                            "max mm", "mm per m away", "longest gap s", "inside 3 sigma (beyond 5)", "fps",
+                            "max mm", "mm per m away", "longest gap s", "inside 3 sigma (beyond 5)",
+                            "scale: step a turn % / walk driving % per m^0.5 / largest step %", "under-turn %", "fps",
                             "meets goals"], rows)
     summary_rows = []
     for label, group in by_tree.items():
@@ -198,10 +236,15 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
                                  distribution([f["gap_s"] for f in chosen]),
                                  distribution([100 * f["consistent"] for f in chosen], True),
                                  distribution([f["beyond_5"] for f in chosen]),
+                                 distribution([f["turn_step_pct"] for f in chosen]),
+                                 distribution([f["drive_walk_pct"] for f in chosen]),
+                                 distribution([f["largest_step_pct"] for f in chosen]),
+                                 distribution([abs(f["under_turn_pct"]) for f in chosen]),
                                  distribution([f["fps"] for f in chosen], True)])
     summary = markdown_table(["tracker", "seeds", "count", "meet the goals", "coverage % (median / p10 / worst)",
                               "lost where seen before %", "RMS mm (median / p90 / worst)", "max mm", "mm per m away", "longest gap s",
-                              "inside 3 sigma % (median / p10 / worst)", "beyond 5 sigma", "fps (median / p10 / worst)"],
+                              "inside 3 sigma % (median / p10 / worst)", "beyond 5 sigma", "scale step a turn %",
+                              "scale walk driving % per m^0.5", "largest scale step %", "under-turn % (size)", "fps (median / p10 / worst)"],
                              summary_rows)
     seeds = sorted({seed for seed, *_ in results})
     draws = max(first for _, _, first, *_ in results) + 1
@@ -217,7 +260,8 @@ def report(results: list[tuple[int, str, int, dict, dict]], which: str, jobs: in
             ["seed", "tracker", "draws", "coverage %", "RMS mm", "beyond 5 sigma", "draws meeting the goals"],
             spread_rows))
     return (f"{machine_line()}. Family set `{which}` (seeds {', '.join(map(str, seeds))}), `cubeloc track` per "
-            f"seed, bundle adjustment in the frame loop, {jobs} runs at once (fps is each run's own, on a loaded "
+            f"seed{WITH_WHEELS if odometry else ''}, "
+            f"bundle adjustment in the frame loop, {jobs} runs at once (fps is each run's own, on a loaded "
             f"machine); " + (f"**baseline** = commit {baseline_commit(BASELINE_COMMIT)}. " if "baseline" in by_tree else
                          f"this tree alone (`CUBELOC_BENCH_FAMILY_BASELINE=0`; the baseline, commit {BASELINE_COMMIT}, "
                          "on the same frames: [family.md](family.md)). ")
@@ -238,9 +282,10 @@ def run() -> str:
     baseline = os.environ.get("CUBELOC_BENCH_FAMILY_BASELINE", "1") != "0"
     jobs = int(os.environ.get("CUBELOC_BENCH_FAMILY_JOBS", os.cpu_count() or 1))
     draws = int(os.environ.get("CUBELOC_BENCH_FAMILY_DRAWS", "3"))
+    odometry = os.environ.get("CUBELOC_BENCH_FAMILY_ODOMETRY", "0") == "1"
     if draws < 1:
         raise SystemExit(f"CUBELOC_BENCH_FAMILY_DRAWS={draws}: at least 1")
-    return report(measure(seeds, which, root, baseline, jobs, draws), which, jobs)
+    return report(measure(seeds, which, root, baseline, jobs, draws, odometry), which, jobs, odometry)
 
 
 def trace(sequence: Path, first: int = 0, last: int | None = None, every: int = 1) -> None:

@@ -94,9 +94,10 @@ def _track(tree: Path, sequence: Path, out: Path, poses: bool, extra: tuple[str,
             "peak_mb": int(peak.group(1)) / 1024 if peak else float("nan")}
 
 
-def read_poses(sequence: Path, poses_jsonl: Path) -> list:
+def read_poses(sequence: Path, poses_jsonl: Path, sources: list | None = None) -> list:
     """Per frame of ``sequence``: (StampedPose, 6x6 covariance or None) from ``cubeloc track
-    --poses``, or None for a frame without a pose."""
+    --poses``, or None for a frame without a pose. ``sources``, when given, is filled with
+    each frame's pose source (``target``, ``map``, ...; None without a pose)."""
     from cubeloc.drivers.sequence import read_sequence_index
     from cubeloc.positioning.geometry import Transform
     from cubeloc.positioning.trajectory_io import StampedPose
@@ -106,8 +107,11 @@ def read_poses(sequence: Path, poses_jsonl: Path) -> list:
         doc = json.loads(line)
         pose = Transform.from_quaternion(np.array(doc["position"]), np.array(doc["orientation"]))
         cov = None if doc["covariance"] is None else np.array(doc["covariance"]).reshape(6, 6)
-        by_stamp[doc["stamp_ns"]] = (StampedPose(doc["stamp_ns"], pose), cov)
-    return [by_stamp.get(e.stamp_ns) for e in read_sequence_index(sequence)]
+        by_stamp[doc["stamp_ns"]] = (StampedPose(doc["stamp_ns"], pose), cov, doc.get("source"))
+    frames = [by_stamp.get(e.stamp_ns) for e in read_sequence_index(sequence)]
+    if sources is not None:
+        sources[:] = [None if f is None else f[2] for f in frames]
+    return [None if f is None else f[:2] for f in frames]
 
 
 def _score(sequence: Path, out: Path, poses: bool):

@@ -427,6 +427,32 @@ def make_case(seed: int, resolution: str = "half") -> FamilyCase:
                       tuple(textured))
 
 
+def wheel_odometry(case: FamilyCase, rate_hz: float = 50.0, phase_s: float = 0.007) -> list[dict]:
+    """The robot's wheel odometry along ``case`` (``fakes.odometry.wheel_odometry``: distances
+    1.5 % long, turns 1 %, a heading drift, noise, 30 ms late), at ``rate_hz`` on its own
+    clock phase: the base's axis ``lever_m`` behind the camera, heading where it looks."""
+    from cubeloc.fakes.odometry import wheel_odometry as odometry_rows
+
+    times = np.array([(p.stamp_ns - EPOCH_NS) / 1e9 for p in case.poses])
+    centres = np.array([p.T_world_camera.translation for p in case.poses])
+    forward = np.array([p.T_world_camera.rotation[:, 2] for p in case.poses])
+    heading = np.unwrap(np.arctan2(forward[:, 1], forward[:, 0]))
+    x = centres[:, 0] - case.robot.lever_m * np.cos(heading)
+    y = centres[:, 1] - case.robot.lever_m * np.sin(heading)
+    at = phase_s + np.arange(int(np.floor((times[-1] - phase_s) * rate_hz + 1e-9)) + 1) / rate_hz
+    planar = [(float(a), float(b), float(c)) for a, b, c in
+              zip(np.interp(at, times, x), np.interp(at, times, y), np.interp(at, times, heading), strict=True)]
+    return odometry_rows(at, planar, seed=case.seed)
+
+
+def base_from_camera(case: FamilyCase) -> tuple[list[float], list[float]]:
+    """The camera's mount on the robot's base (xyz, quaternion [x, y, z, w]), exact, as
+    ``[frames] base_from_camera`` takes it."""
+    from cubeloc.fakes.odometry import mount_of
+
+    return mount_of(case.poses[0].T_world_camera, case.robot.lever_m)
+
+
 def render_case(case: FamilyCase, out_dir, progress=None):
     """Render ``case`` as a sequence directory (``fakes.sequence`` layout) with its
     ``family.json``; returns the ``SequenceSummary``."""

@@ -215,6 +215,125 @@ def scale_drift(
     )
 
 
+@dataclass(frozen=True)
+class ScaleWalk:
+    """How the scale walks while the target is away, told apart by what the robot did
+    between two stretches of path: turned, or drove on (``scale_walk``). Each entry is one
+    pair of stretches."""
+
+    stretch_m: float
+    turned_deg: np.ndarray  # (T,) the turning between the two stretches' middles, pairs that turned
+    turn_steps: np.ndarray  # (T,) |log| of their scales' ratio: the scale's step across each turn
+    drive_steps: np.ndarray  # (D,) the same, pairs that turned less (straight drives, arcs)
+    under_turn_percent: np.ndarray  # (T,) how much less than the camera the estimate turned, %
+
+    @property
+    def turn_step_percent(self) -> float:
+        """The RMS step across a turn, %."""
+        return float(100.0 * np.sqrt(np.mean(self.turn_steps**2))) if len(self.turn_steps) else float("nan")
+
+    @property
+    def drive_walk_percent(self) -> float:
+        """How fast the scale walks while driving on, % per square root of metre: the RMS
+        change from one stretch to the next over the root of the stretch's length (a random
+        walk's rate, the same whatever the stretch)."""
+        return float(100.0 * np.sqrt(np.mean(self.drive_steps**2) / self.stretch_m)) if len(self.drive_steps) \
+            else float("nan")
+
+    @property
+    def largest_step_percent(self) -> float:
+        """The largest change from one stretch to the next, turn or drive, %."""
+        steps = np.concatenate([self.turn_steps, self.drive_steps])
+        return float(100.0 * steps.max()) if len(steps) else float("nan")
+
+
+def _heading(rotation: np.ndarray, up: np.ndarray) -> float:
+    """The optical axis' direction about ``up``, radians (world x towards y for up = z)."""
+    axis = rotation[:, 2] - (rotation[:, 2] @ up) * up
+    east = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    east = east - (east @ up) * up
+    north = np.cross(up, east)
+    return float(np.arctan2(axis @ north, axis @ east))
+
+
+def scale_walk(truth: list[StampedPose], estimates: list[StampedPose | None], away: np.ndarray | None = None,
+               stretch_m: float = 1.0, turn_deg: float = 30.0, up: np.ndarray | None = None) -> ScaleWalk:
+    """Where the estimate's scale changes: across turns, or along straight drives.
+
+    ``truth`` and ``estimates`` are one per frame (None: no pose); ``away`` (per frame,
+    default all) marks the frames whose pose is not the target's. The true path is cut into
+    stretches of ``stretch_m``; a stretch's scale is the estimated over the true
+    displacement between its ends (a stretch that bends to less than half its length end
+    to end has none). Two stretches with a scale make a pair when every frame from the
+    first to the second is posed, the target does not come back there, no stretch between
+    them has a scale, and the second is away all through. The turning between their
+    middles (the sum of the camera's heading changes about ``up``, default world z) sorts
+    the pair as a turn (``turn_deg`` or more) or a drive (less: straight on, or an arc).
+    For a turn whose net heading change is ``turn_deg`` or more, the estimate's heading
+    change is also compared with the true one.
+
+    >>> from cubeloc.positioning.geometry import Transform
+    >>> def drive(n=200):  # 2 m along x, a 90 deg turn on the spot, 2 m along y
+    ...     poses, yaw, x = [], 0.0, np.zeros(3)
+    ...     for i in range(3 * n):
+    ...         if i < n or i >= 2 * n:
+    ...             x = x + 0.01 * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    ...         else:
+    ...             yaw += np.pi / 2 / n
+    ...         c, s = np.cos(yaw), np.sin(yaw)  # optical axis along the heading, image y down
+    ...         poses.append(StampedPose(i, Transform(np.array([[s, 0, c], [-c, 0, s], [0, -1, 0.0]]), x)))
+    ...     return poses
+    >>> truth = drive()
+    >>> origin = truth[300].T_world_camera.translation  # 5 % shorter after the turn
+    >>> shrunk = [p if i < 300 else StampedPose(p.stamp_ns, Transform(p.T_world_camera.rotation,
+    ...           origin + 0.95 * (p.T_world_camera.translation - origin))) for i, p in enumerate(truth)]
+    >>> walk = scale_walk(truth, shrunk, stretch_m=0.5)
+    >>> round(walk.turn_step_percent, 1), round(walk.drive_walk_percent, 2), walk.turned_deg.round().tolist()
+    (5.1, 0.0, [90.0])
+    """
+    if len(truth) != len(estimates):
+        raise ValueError(f"{len(truth)} ground-truth poses for {len(estimates)} frames")
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64) / np.linalg.norm(up)
+    n = len(truth)
+    away = np.ones(n, bool) if away is None else np.asarray(away, bool)
+    # a pose missing, or the target coming back into view (its pose corrects the map's):
+    # nothing measured across such a frame is the map's own scale
+    breaks = ~np.array([e is not None for e in estimates]) | (~away & np.r_[False, away[:-1]])
+    true_xyz = np.array([t.T_world_camera.translation for t in truth]).reshape(-1, 3)
+    path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(true_xyz, axis=0), axis=1))]
+    heading = np.array([_heading(t.T_world_camera.rotation, up) for t in truth])
+    turning = np.r_[0.0, np.cumsum(np.abs(np.angle(np.exp(1j * np.diff(heading)))))]
+    broken = np.r_[0, np.cumsum(breaks)]  # breaks before frame i: broken[b + 1] - broken[a] in a..b
+    inside = np.r_[0, np.cumsum(~away)]  # frames with the target in view before frame i
+    ends = np.searchsorted(path, np.arange(0.0, path[-1], stretch_m))
+    turned, turn_steps, drive_steps, under = [], [], [], []
+    previous = None  # the last stretch with a scale: (middle frame, log scale)
+    for a, b in zip(ends[:-1], ends[1:], strict=True):
+        if broken[b + 1] - broken[a]:
+            previous = None
+            continue
+        true_step = np.linalg.norm(true_xyz[b] - true_xyz[a])
+        if true_step < 0.5 * stretch_m:  # bent double (a turn in it): no scale, but no break either
+            continue
+        est_step = np.linalg.norm(estimates[b].T_world_camera.translation - estimates[a].T_world_camera.translation)
+        current = (int(np.searchsorted(path, 0.5 * (path[a] + path[b]))), np.log(max(est_step, 1e-12) / true_step))
+        if previous is not None and inside[b + 1] == inside[a]:  # the scale after is the map's alone
+            (m0, s0), (m1, s1) = previous, current
+            total = np.degrees(turning[m1] - turning[m0])
+            if total < turn_deg:
+                drive_steps.append(abs(s1 - s0))
+            else:
+                turned.append(total)
+                turn_steps.append(abs(s1 - s0))
+                net = np.angle(np.exp(1j * (heading[m1] - heading[m0])))
+                if abs(np.degrees(net)) >= turn_deg:
+                    estimated = np.angle(np.exp(1j * (_heading(estimates[m1].T_world_camera.rotation, up)
+                                                      - _heading(estimates[m0].T_world_camera.rotation, up))))
+                    under.append(100.0 * (1.0 - estimated / net))
+        previous = current
+    return ScaleWalk(stretch_m, np.array(turned), np.array(turn_steps), np.array(drive_steps), np.array(under))
+
+
 # NEES bounds for the position (3 dof): the chi-square 99.7 % bound, and a Mahalanobis
 # distance of 5 (an error 5 standard deviations out along its own worst direction)
 CHI2_3DOF_997 = 14.16

@@ -10,6 +10,7 @@ from cubeloc.positioning.evaluation import (
     associate,
     relative_pose_error,
     scale_drift,
+    scale_walk,
 )
 from cubeloc.positioning.geometry import Transform, look_at
 from cubeloc.positioning.trajectory_io import StampedPose, read_tum, write_tum
@@ -95,3 +96,48 @@ def test_tum_round_trip_keeps_the_error(tmp_path):
     write_tum(tmp_path / "est.tum", est)
     ate = absolute_trajectory_error(read_tum(tmp_path / "gt.tum"), read_tum(tmp_path / "est.tum"))
     assert ate.rmse_m == pytest.approx(0.002, abs=1e-8)
+
+
+def _drive_turn_drive(n: int = 200, step_m: float = 0.01, turn_deg: float = 90.0) -> list[StampedPose]:
+    """n steps along x, a turn on the spot of ``turn_deg`` over n frames, n steps on."""
+    poses, yaw, x = [], 0.0, np.zeros(3)
+    for i in range(3 * n):
+        if i < n or i >= 2 * n:
+            x = x + step_m * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        else:
+            yaw += np.radians(turn_deg) / n
+        c, s = np.cos(yaw), np.sin(yaw)  # optical axis along the heading, image y down
+        poses.append(StampedPose(i, Transform(np.array([[s, 0, c], [-c, 0, s], [0, -1, 0.0]]), x)))
+    return poses
+
+
+def test_scale_walk_tells_a_step_in_a_turn_from_a_drift_and_measures_the_under_turn():
+    truth = _drive_turn_drive()
+    # the estimate turns 2 % less than the camera (from the turn on), and its scale falls 6 %
+    # in the turn; before the turn the scale grows 1 % per metre
+    est = []
+    for i, p in enumerate(truth):
+        t = p.T_world_camera.translation.copy()
+        if i < 200:
+            t[0] = t[0] + 0.005 * t[0] ** 2
+        else:
+            t = est[199].T_world_camera.translation + 0.94 * (t - truth[199].T_world_camera.translation)
+        turned = np.radians(90.0) * min(max(i - 200, 0), 200) / 200
+        # about the camera's y, which points down: against the turn
+        fix = Transform.from_rvec_tvec(np.array([0.0, 0.02 * turned, 0.0]), np.zeros(3))
+        est.append(StampedPose(p.stamp_ns, Transform(p.T_world_camera.rotation @ fix.rotation, t)))
+    walk = scale_walk(truth, est, stretch_m=0.5)
+    assert walk.turned_deg.round().tolist() == [90.0]
+    # the step: log(0.94 / 1.015), the scale before it being 1.015 over the stretch 1.5-2 m
+    assert walk.turn_step_percent == pytest.approx(100 * abs(np.log(0.94 / (1 + 0.01 * 1.75))), abs=0.3)
+    assert walk.largest_step_percent == walk.turn_step_percent
+    assert walk.under_turn_percent.tolist() == pytest.approx([2.0], abs=0.05)
+    # driving: 3 pairs 0.5 % apart before the turn (1 %/m), 2 pairs with no change after it
+    assert len(walk.drive_steps) == 5
+    assert walk.drive_walk_percent == pytest.approx(100 * np.sqrt(3 * 0.005**2 / 5 / 0.5), rel=0.05)
+    # with the frames of the turn marked as the target in view, no pair spans it
+    away = np.ones(len(truth), bool)
+    away[250:350] = False
+    assert len(scale_walk(truth, est, away, stretch_m=0.5).turn_steps) == 0
+    none = scale_walk(truth, truth, stretch_m=0.5)
+    assert none.turn_step_percent == pytest.approx(0.0, abs=1e-9) and none.drive_walk_percent < 1e-9

@@ -16,8 +16,10 @@ from cubeloc.fakes.family import (
     CUBE_HALF,
     RESOLUTIONS,
     _textured_share,
+    base_from_camera,
     make_case,
     render_case,
+    wheel_odometry,
 )
 from cubeloc.fakes.room import Room
 from cubeloc.fakes.trajectories import camera_from_yaw_pitch
@@ -119,3 +121,35 @@ def test_a_rendered_case_is_a_sequence_with_its_description(tmp_path, cases):
     assert described["seed"] == case.seed and described["camera"]["fps"] == case.robot.fps
     assert (tmp_path / "seq" / "render.key").read_text().strip() == short.render_key()
     assert short.render_key() != case.render_key()
+
+
+def test_the_robots_wheel_odometry_follows_its_base_with_the_wheels_errors(cases):
+    from cubeloc.positioning.geometry import Transform
+
+    case = cases[6]
+    rows = wheel_odometry(case)
+    stamps = np.array([r["stamp_ns"] for r in rows])
+    assert np.all(np.diff(stamps) == 20_000_000)  # 50 Hz
+    assert case.poses[0].stamp_ns < stamps[0] < case.poses[1].stamp_ns  # on its own clock phase
+    assert stamps[-1] <= case.poses[-1].stamp_ns
+    # the base under the camera, as the mount says: the camera carried on by the odometry
+    # from its first pose lands where the truth has it, within the wheels' errors
+    xyz, quaternion = base_from_camera(case)
+    mount = Transform.from_quaternion(np.array(xyz), np.array(quaternion))
+    start = case.poses[0].T_world_camera @ mount.inverse()  # the base in the world at the start
+    first = Transform.from_quaternion(np.array(rows[0]["position"]), np.array(rows[0]["orientation"]))
+    k = len(rows) // 4  # a quarter of the run in
+    at = Transform.from_quaternion(np.array(rows[k]["position"]), np.array(rows[k]["orientation"]))
+    camera = start @ first.inverse() @ at @ mount
+    truth = min(case.poses, key=lambda p: abs(p.stamp_ns - rows[k]["stamp_ns"])).T_world_camera
+    positions = np.array([r["position"] for r in rows])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    driven = steps[:k].sum()
+    assert driven > 2.0
+    assert np.linalg.norm(camera.translation - truth.translation) < 0.05 * driven
+    # the wheels measure the base's path (the axis, the lever behind the camera), 1.5 % long
+    centres = np.array([p.T_world_camera.translation[:2] for p in case.poses])
+    forward = np.array([p.T_world_camera.rotation[:2, 2] for p in case.poses])
+    axis = centres - case.robot.lever_m * forward / np.linalg.norm(forward, axis=1, keepdims=True)
+    true_path = np.linalg.norm(np.diff(axis, axis=0), axis=1).sum()
+    assert steps.sum() / true_path == pytest.approx(1.015, abs=0.005)
