@@ -114,7 +114,7 @@ def seed_figures(sequence: Path, per_frame: list, first: int = 0, sources: list 
             "bound_mm": bound_mm, "meets": bool(meets), "flagged": bool(described["unobservable"]),
             "frames": score.frames, "turn_step_pct": walk.turn_step_percent, "drive_walk_pct": walk.drive_walk_percent,
             "largest_step_pct": walk.largest_step_percent,
-            "under_turn_pct": float(np.median(walk.under_turn_percent)) if len(walk.under_turn_percent) else float("nan"),
+            "under_turn_pct": walk.under_turn_median_percent,
             "lost_seen": float(lost_where_seen_before(truth, [e is not None for e in per_frame]).mean())}
 
 

@@ -241,6 +241,11 @@ class ScaleWalk:
             else float("nan")
 
     @property
+    def under_turn_median_percent(self) -> float:
+        """The median under-turn over the turns, %."""
+        return float(np.median(self.under_turn_percent)) if len(self.under_turn_percent) else float("nan")
+
+    @property
     def largest_step_percent(self) -> float:
         """The largest change from one stretch to the next, turn or drive, %."""
         steps = np.concatenate([self.turn_steps, self.drive_steps])
@@ -300,7 +305,7 @@ def scale_walk(truth: list[StampedPose], estimates: list[StampedPose | None], aw
     # nothing measured across such a frame is the map's own scale
     breaks = ~np.array([e is not None for e in estimates]) | (~away & np.r_[False, away[:-1]])
     true_xyz = np.array([t.T_world_camera.translation for t in truth]).reshape(-1, 3)
-    path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(true_xyz, axis=0), axis=1))]
+    path = _path_lengths(truth)
     heading = np.array([_heading(t.T_world_camera.rotation, up) for t in truth])
     turning = np.r_[0.0, np.cumsum(np.abs(np.angle(np.exp(1j * np.diff(heading)))))]
     broken = np.r_[0, np.cumsum(breaks)]  # breaks before frame i: broken[b + 1] - broken[a] in a..b

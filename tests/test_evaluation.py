@@ -132,6 +132,7 @@ def test_scale_walk_tells_a_step_in_a_turn_from_a_drift_and_measures_the_under_t
     assert walk.turn_step_percent == pytest.approx(100 * abs(np.log(0.94 / (1 + 0.01 * 1.75))), abs=0.3)
     assert walk.largest_step_percent == walk.turn_step_percent
     assert walk.under_turn_percent.tolist() == pytest.approx([2.0], abs=0.05)
+    assert walk.under_turn_median_percent == pytest.approx(2.0, abs=0.05)
     # driving: 3 pairs 0.5 % apart before the turn (1 %/m), 2 pairs with no change after it
     assert len(walk.drive_steps) == 5
     assert walk.drive_walk_percent == pytest.approx(100 * np.sqrt(3 * 0.005**2 / 5 / 0.5), rel=0.05)
