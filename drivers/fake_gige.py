@@ -2,7 +2,9 @@
 as a process that tests and benchmarks can stop and restart (to pull the plug).
 
 Needs ``arv-fake-gv-camera-0.8`` (Debian: aravis-tools). Only one fake can own
-127.0.0.1:3956/udp at a time, so ``start`` waits for the port to be free.
+127.0.0.1:3956/udp at a time, so ``start`` waits for the port to be free; it returns once
+Aravis' broadcast discovery lists the fake, so that a client that looks it up by name finds
+it even when a busy machine is slow to start the fake's main loop.
 """
 
 from __future__ import annotations
@@ -52,7 +54,19 @@ class GvFake:
             if self.process.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"{FAKE_GV_CAMERA} did not start (exit {self.process.poll()})")
             time.sleep(0.02)
+        self._wait_discoverable(deadline_s=30.0)
         return self
+
+    def _wait_discoverable(self, deadline_s: float) -> None:
+        """Bound to its port is not yet answering: each discovery waits out Aravis' own
+        reply window (1 s), and this repeats it until the fake answers or the deadline."""
+        from cubeloc.drivers.aravis_camera import list_aravis_devices
+
+        deadline = time.monotonic() + deadline_s
+        while not any(d.serial == self.serial for d in list_aravis_devices()):
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"{FAKE_GV_CAMERA} -s {self.serial} is not answering GigE Vision "
+                                   f"discovery after {deadline_s:.0f} s (exit {self.process.poll()})")
 
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:
