@@ -41,6 +41,19 @@ def mount_of(T_world_camera: Transform, lever_m: float = LEVER_M) -> tuple[list[
     return [float(v) for v in mount.translation], [float(v) for v in mount.quaternion()]
 
 
+def drawn_errors(draw: int) -> dict:
+    """The wheels' errors of one robot of a family (``wheel_odometry``'s keywords): draw 0
+    has the documented ones (distances 1.5 % long, turns 1 % long, 0.2 deg/s); every other
+    draw its own, uniform within distances +-2 %, turns +-1.5 %, heading drift +-0.3 deg/s
+    (past the error model's 0.2 deg/s: a robot whose gyro is worse than its config says),
+    and its own noise."""
+    if draw == 0:
+        return {}
+    rng = np.random.default_rng(1000 + draw)
+    return {"scale_error": float(rng.uniform(-0.02, 0.02)), "turn_error": float(rng.uniform(-0.015, 0.015)),
+            "heading_drift_deg_s": float(rng.uniform(-0.3, 0.3)), "seed": draw}
+
+
 def _planar(T_world_camera: Transform, T_base_camera: Transform) -> tuple[float, float, float]:
     """The base under a camera (x, y, heading): the base's x is the mount's, seen from the
     camera and laid flat; its axis the mount's horizontal lever behind the camera. A

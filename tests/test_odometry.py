@@ -147,3 +147,22 @@ def test_the_simulated_odometry_is_as_wrong_as_it_says():
     # the turn 1 % long, and 0.2 deg/s on top (white noise off)
     assert abs(headings[-1] - headings[0] - (true_turn * 1.01 + math.radians(0.2) * seconds)) < 1e-6
     assert max(np.hypot(r["position"][0], r["position"][1]) for r in rows) < 0.5  # the axis barely moves
+
+
+def test_each_drawn_robot_has_its_own_wheels_and_draw_0_the_documented_ones():
+    """bench odometry's robots: draw 0 the errors the docs state, each other draw its own
+    distance, turn and drift within the family's bounds, the same every time."""
+    from cubeloc.fakes.odometry import drawn_errors, mount_of
+    from cubeloc.fakes.trajectories import make_trajectory
+
+    assert drawn_errors(0) == {}
+    draws = [drawn_errors(k) for k in range(1, 9)]
+    assert draws == [drawn_errors(k) for k in range(1, 9)]
+    for bound, key in ((0.02, "scale_error"), (0.015, "turn_error"), (0.3, "heading_drift_deg_s")):
+        values = [d[key] for d in draws]
+        assert all(abs(v) <= bound for v in values) and len(set(values)) == len(values)
+    xyz, quaternion = mount_of(make_trajectory("spin_in_place", 22.0)[0].T_world_camera)
+    mount = Transform.from_quaternion(xyz, quaternion)
+    turned = [simulate_odometry("spin_in_place", 22.0, mount, **errors)[-1]["orientation"]
+              for errors in (drawn_errors(0), draws[0])]
+    assert not np.allclose(*turned)  # other wheels, another odometry
