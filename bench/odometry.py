@@ -55,14 +55,16 @@ def run() -> str:
             sequence = _render(root, name)
             seconds = DEFAULT_SECONDS[name]
             xyz, quaternion = mount_of(make_trajectory(name, seconds)[0].T_world_camera, LEVER_OF.get(name, LEVER_M))
+            configs = {}
+            for mode, as_prior in (("bridge", False), ("bridge + prior", True)):
+                configs[mode] = Path(tmp) / f"{name}-{as_prior}.toml"
+                _config(configs[mode], xyz, quaternion, as_prior)
             runs = {("vision", 0): ()}
             for draw in draws:
                 odometry = Path(tmp) / f"{name}-{draw}-odometry.jsonl"
                 write_odometry(odometry, simulate_odometry(name, seconds, Transform.from_quaternion(xyz, quaternion),
                                                            **drawn_errors(draw)))
-                for mode, as_prior in (("bridge", False), ("bridge + prior", True)):
-                    config = Path(tmp) / f"{name}-{as_prior}.toml"
-                    _config(config, xyz, quaternion, as_prior)
+                for mode, config in configs.items():
                     runs[mode, draw] = ("--odometry", str(odometry), "--config", str(config))
 
             def one(key, name=name, sequence=sequence, runs=runs):
